@@ -1,0 +1,64 @@
+#pragma once
+#include <memory>
+#include <vector>
+
+#include "common/types.hpp"
+
+namespace matlearn::correction {
+
+/// Batched output of a stress correction N(Fh, Fhdot) for m elements.
+struct CorrectionOutput {
+  MatX3 dPh;                  ///< (m x 3) principal stress correction (Pa)
+  std::vector<Mat3> d_dFh;    ///< m Jacobians dN/dFh
+  std::vector<Mat3> d_dFhdot; ///< m Jacobians dN/dFhdot (s)
+  VecX dalpha;                ///< (m) additive change of the element's stiffness-damping alpha_K (s)
+};
+
+/// A learned correction to the nominal principal stress, evaluated for all elements at once.
+class Correction {
+ public:
+  virtual ~Correction() = default;
+  /// Fh, Fhdot: (m x 3). Fills `out` for all m rows.
+  virtual void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const = 0;
+  /// True when evaluate() may run on several threads (false for Python callbacks).
+  virtual bool thread_safe() const { return true; }
+};
+
+/// RBF correction over principal stretches (method.md section 6):
+///   dPh(Fh) = A (Fh - 1) + b + sum_k w_k phi(|Fh - c_k|),   phi(r) = sqrt(r^2 + eps^2)
+///   dalpha(Fh) = a0 + sum_k wa_k phi(|Fh - c_k|)
+/// centers (c x 3), weights (c x 3), linear A (3 x 3), bias b (3), alpha_weights (c), alpha_bias.
+class RbfCorrection final : public Correction {
+ public:
+  RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bias, VecX alpha_weights,
+                double alpha_bias, double epsilon);
+  void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
+
+ private:
+  MatX3 c_, w_;
+  Mat3 A_;
+  Vec3 b_;
+  VecX wa_;
+  double a0_, eps_;
+};
+
+/// Dense layer of an MLP: y = W x + b (W is out x in); batch norm folded in at export.
+struct DenseLayer {
+  MatX W;
+  VecX b;
+};
+
+/// MLP correction N(Fh, Fhdot) -> dPh with ELU between layers (none after the last), inputs
+/// normalised (x - in_mean) / in_std and outputs de-normalised y * out_std + out_mean.
+class MlpCorrection final : public Correction {
+ public:
+  MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX in_std, VecX out_mean,
+                VecX out_std);
+  void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
+
+ private:
+  std::vector<DenseLayer> layers_;
+  VecX in_mean_, in_std_, out_mean_, out_std_;
+};
+
+}  // namespace matlearn::correction

@@ -1,0 +1,46 @@
+#pragma once
+#include <string>
+#include <vector>
+
+#include "common/types.hpp"
+
+namespace matlearn::fem {
+
+/// Elastic laws, all written in principal stretches s (3) with per-element Lame parameters.
+enum class MaterialModel { Corotated, NeoHookean, StVK, Designed };
+
+MaterialModel material_model_from_string(const std::string& name);
+std::string to_string(MaterialModel m);
+
+/// A spline "edit" of the separable designed material: adds f'(s_i) = amplitude * b((s_i -
+/// center) / half_width) to each principal stress, b(t) = (1 - t^2)^2 on |t| < 1 (a C1 bump).
+/// Must not cover s = 1 so the rest state stays stress free.
+struct StretchEdit {
+  double amplitude;   ///< Pa
+  double center;      ///< stretch
+  double half_width;  ///< stretch
+};
+
+/// Neo-Hookean uses log J continued below J0 by its quadratic Taylor polynomial, which keeps
+/// energy, stress and tangent finite (and consistent) for inverted elements.
+constexpr double kNeoHookeanJ0 = 0.2;
+
+double principal_energy(MaterialModel m, const Vec3& s, double mu, double lambda,
+                        const std::vector<StretchEdit>& edits = {});
+Vec3 principal_stress(MaterialModel m, const Vec3& s, double mu, double lambda,
+                      const std::vector<StretchEdit>& edits = {});
+Mat3 principal_stress_derivative(MaterialModel m, const Vec3& s, double mu, double lambda,
+                                 const std::vector<StretchEdit>& edits = {});
+
+/// dP/dF (9 x 9, acting on column-major vec(F)) of an isotropic law from its principal data,
+/// following Teran et al. 2005 / Xu et al. 2015 with the repeated-stretch limits.
+/// `dPh` is dPh/ds (3x3); if `project_psd`, each principal block is clamped to be PSD.
+Eigen::Matrix<double, 9, 9> stress_derivative_from_principal(const Mat3& U, const Vec3& s,
+                                                             const Mat3& V, const Vec3& Ph,
+                                                             const Mat3& dPh, bool project_psd);
+
+/// Lame parameters from Young's modulus (Pa) and Poisson ratio.
+inline double lame_mu(double E, double nu) { return E / (2.0 * (1.0 + nu)); }
+inline double lame_lambda(double E, double nu) { return E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)); }
+
+}  // namespace matlearn::fem

@@ -1,0 +1,227 @@
+#include "fem/model.hpp"
+
+#include "fem/svd.hpp"
+
+namespace matlearn::fem {
+
+using Vec12 = Eigen::Matrix<double, 12, 1>;
+using Mat9 = Eigen::Matrix<double, 9, 9>;
+using Mat9x12 = Eigen::Matrix<double, 9, 12>;
+
+Model::Model(std::shared_ptr<const TetMesh> mesh, MaterialModel material, VecX mu, VecX lambda,
+             VecX density, std::vector<StretchEdit> edits, DampingParams damping)
+    : mesh_(std::move(mesh)), material_(material), mu_(std::move(mu)), lambda_(std::move(lambda)),
+      density_(std::move(density)), edits_(std::move(edits)), damping_(std::move(damping)) {
+  const int m = mesh_->num_tets();
+  if (mu_.size() != m || lambda_.size() != m || density_.size() != m)
+    throw InvalidInput("Model: mu, lambda and density need one value per tet (" +
+                       std::to_string(m) + ")");
+  if (!mu_.allFinite() || !lambda_.allFinite() || !density_.allFinite())
+    throw InvalidInput("Model: material parameters contain NaN or Inf");
+  if ((mu_.array() <= 0).any()) throw InvalidInput("Model: shear modulus must be > 0");
+  if ((lambda_.array() < 0).any())
+    throw InvalidInput("Model: Lame lambda must be >= 0 (Poisson ratio in [0, 0.5))");
+  if ((density_.array() <= 0).any()) throw InvalidInput("Model: density must be > 0");
+  if (damping_.alpha_mass < 0 || damping_.alpha_stiffness < 0)
+    throw InvalidInput("Model: Rayleigh coefficients must be >= 0");
+  for (const auto& ed : edits_) {
+    if (!(ed.half_width > 0)) throw InvalidInput("Model: stretch edit half_width must be > 0");
+    if (std::abs(ed.center - 1.0) < ed.half_width)
+      throw InvalidInput("Model: a stretch edit must not cover the rest stretch 1 "
+                         "(|center - 1| >= half_width), or the rest state would be stressed");
+  }
+  mass_ = mesh_->lumped_mass(density_);
+  dof_mass_.resize(3 * mass_.size());
+  for (int i = 0; i < mass_.size(); ++i) dof_mass_.segment<3>(3 * i).setConstant(mass_[i]);
+}
+
+void Model::check_state(const MatX3& x, const char* name) const {
+  if (x.rows() != mesh_->num_vertices())
+    throw InvalidInput(std::string(name) + ": expected shape (" +
+                       std::to_string(mesh_->num_vertices()) + ", 3), got (" +
+                       std::to_string(x.rows()) + ", 3)");
+  if (!x.allFinite()) throw InvalidInput(std::string(name) + " contains NaN or Inf");
+}
+
+double Model::damping_alpha(double base, const std::vector<double>& poly, double s1) const {
+  double a = base, p = 1.0;
+  for (double c : poly) {
+    p *= (s1 - 1.0);
+    a += c * p;
+  }
+  return std::max(a, 0.0);
+}
+
+Mat9x12 Model::shape_gradient(int e) const {
+  const Mat3& Bm = mesh_->Bm()[e];
+  Mat9x12 G = Mat9x12::Zero();
+  // F_ij = sum_k Ds_ik Bm_kj, Ds_:k = x_{k+1} - x_0.
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) {
+      double s = 0;
+      for (int a = 1; a < 4; ++a) {
+        G(i + 3 * j, 3 * a + i) = Bm(a - 1, j);
+        s += Bm(a - 1, j);
+      }
+      G(i + 3 * j, i) = -s;
+    }
+  return G;
+}
+
+void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd,
+                     ElementState& st) const {
+  check_state(x, "x");
+  check_state(v, "v");
+  const int m = mesh_->num_tets();
+  const auto& T = mesh_->tets();
+  st.U.resize(m);
+  st.V.resize(m);
+  st.Fh.resize(m, 3);
+  st.Fhdot.resize(m, 3);
+  std::vector<Mat3> Fdot(m);
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < m; ++e) {
+    const Mat3 F = mesh_->deformation_gradient(x, e);
+    Fdot[e] = mesh_->deformation_gradient(v, e);
+    Vec3 s;
+    rotation_variant_svd(F, st.U[e], s, st.V[e]);
+    st.Fh.row(e) = s.transpose();
+    st.Fhdot.row(e) = (st.U[e].transpose() * Fdot[e] * st.V[e]).diagonal().transpose();
+  }
+  correction::CorrectionOutput corr;
+  const bool has_corr = correction_ != nullptr;
+  if (has_corr) {
+    correction_->evaluate(st.Fh, st.Fhdot, corr);
+    if (!corr.dPh.allFinite()) throw NumericalError("correction returned NaN or Inf stress");
+  }
+  st.Ph.resize(m, 3);
+  st.dPh_corr = has_corr ? corr.dPh : MatX3::Zero(m, 3);
+  st.alpha_K.resize(m);
+  st.alpha_M.resize(m);
+  if (flags & kForce) st.f.resize(m);
+  if (flags & kStiffness) st.K.resize(m);
+  if (flags & kDamping) st.D.resize(m);
+  if (flags & kNominalKv) st.Kv.resize(m);
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < m; ++e) {
+    const Vec3 s = st.Fh.row(e).transpose();
+    const double W = mesh_->volumes()[e];
+    const Vec3 Pn = principal_stress(material_, s, mu_[e], lambda_[e], edits_);
+    const Mat3 dPn = principal_stress_derivative(material_, s, mu_[e], lambda_[e], edits_);
+    Vec3 Ph = Pn;
+    double aK = damping_alpha(damping_.alpha_stiffness, damping_.stiffness_poly, s[0]);
+    if (has_corr) {
+      Ph += corr.dPh.row(e).transpose();
+      aK = std::max(aK + corr.dalpha[e], 0.0);
+    }
+    st.Ph.row(e) = Ph.transpose();
+    st.alpha_K[e] = aK;
+    st.alpha_M[e] = damping_alpha(damping_.alpha_mass, damping_.mass_poly, s[0]);
+    const Mat9x12 G = shape_gradient(e);
+    const Mat3& U = st.U[e];
+    const Mat3& V = st.V[e];
+    const Eigen::Map<const Eigen::Matrix<double, 9, 1>> fdot(Fdot[e].data());
+    // Nominal tangent (always projected: Rayleigh damping built on it must stay passive).
+    const Mat9 dPdF_nom = stress_derivative_from_principal(U, s, V, Pn, dPn, true);
+    const Eigen::Matrix<double, 9, 1> Pd = dPdF_nom * fdot;  // damping stress per unit alpha_K
+    if (flags & kForce) {
+      const Mat3 P = U * Ph.asDiagonal() * V.transpose();
+      const Eigen::Map<const Eigen::Matrix<double, 9, 1>> vecP(P.data());
+      Vec12 xe_v;
+      for (int a = 0; a < 4; ++a) xe_v.segment<3>(3 * a) = v.row(T(e, a)).transpose();
+      Vec12 f = -W * G.transpose() * (vecP + aK * Pd);
+      // Mass damping: lumped element mass rho W / 4 per corner.
+      f -= st.alpha_M[e] * density_[e] * W / 4.0 * xe_v;
+      st.f[e] = f;
+    }
+    if (flags & kNominalKv) st.Kv[e] = W * G.transpose() * Pd;
+    if (flags & kStiffness) {
+      Mat9 dPdF;
+      if (!has_corr)
+        dPdF = project_psd ? dPdF_nom : stress_derivative_from_principal(U, s, V, Pn, dPn, false);
+      else
+        dPdF = stress_derivative_from_principal(U, s, V, Ph, dPn + corr.d_dFh[e], project_psd);
+      st.K[e] = W * G.transpose() * dPdF * G;
+    }
+    if (flags & kDamping) {
+      Mat9 Dp = aK * dPdF_nom;
+      if (has_corr && !corr.d_dFhdot[e].isZero()) {
+        // Rate-dependent correction: only its principal-diagonal block enters the tangent.
+        Mat3 J = 0.5 * (corr.d_dFhdot[e] + corr.d_dFhdot[e].transpose());
+        Dp += stress_derivative_from_principal(U, s, V, Vec3::Zero(), J, project_psd);
+      }
+      Mat12 De = W * G.transpose() * Dp * G;
+      const double cm = st.alpha_M[e] * density_[e] * W / 4.0;
+      De.diagonal().array() += cm;
+      st.D[e] = De;
+    }
+  }
+}
+
+VecX Model::gather_forces(const ElementState& st) const {
+  const auto& T = mesh_->tets();
+  VecX f = VecX::Zero(3 * mesh_->num_vertices());
+  for (int e = 0; e < mesh_->num_tets(); ++e)
+    for (int a = 0; a < 4; ++a) f.segment<3>(3 * T(e, a)) += st.f[e].segment<3>(3 * a);
+  return f;
+}
+
+VecX Model::forces(const MatX3& x, const MatX3& v) const {
+  ElementState st;
+  evaluate(x, v, kForce, true, st);
+  return gather_forces(st);
+}
+
+SpMat Model::force_map(const MatX3& x) const {
+  const int m = mesh_->num_tets();
+  MatX3 v = MatX3::Zero(x.rows(), 3);
+  ElementState st;
+  evaluate(x, v, 0, true, st);
+  const auto& T = mesh_->tets();
+  std::vector<Eigen::Triplet<double, int>> trip;
+  trip.reserve(size_t(m) * 36);
+  for (int e = 0; e < m; ++e) {
+    const Mat9x12 G = shape_gradient(e);
+    const double W = mesh_->volumes()[e];
+    for (int k = 0; k < 3; ++k) {
+      const Mat3 P = st.U[e].col(k) * st.V[e].col(k).transpose();
+      const Vec12 col = -W * G.transpose() * Eigen::Map<const Eigen::Matrix<double, 9, 1>>(P.data());
+      for (int a = 0; a < 12; ++a) trip.emplace_back(3 * T(e, a / 3) + a % 3, 3 * e + k, col[a]);
+    }
+  }
+  SpMat B(3 * x.rows(), 3 * m);
+  B.setFromTriplets(trip.begin(), trip.end());
+  return B;
+}
+
+SpMat Model::stiffness_damping_map(const MatX3& x, const MatX3& v) const {
+  ElementState st;
+  evaluate(x, v, kNominalKv, true, st);
+  const auto& T = mesh_->tets();
+  const int m = mesh_->num_tets();
+  std::vector<Eigen::Triplet<double, int>> trip;
+  trip.reserve(size_t(m) * 12);
+  for (int e = 0; e < m; ++e)
+    for (int a = 0; a < 12; ++a) trip.emplace_back(3 * T(e, a / 3) + a % 3, e, -st.Kv[e][a]);
+  SpMat G(3 * x.rows(), m);
+  G.setFromTriplets(trip.begin(), trip.end());
+  return G;
+}
+
+SpMat Model::mass_damping_map(const MatX3& v) const {
+  check_state(v, "v");
+  const auto& T = mesh_->tets();
+  const int m = mesh_->num_tets();
+  std::vector<Eigen::Triplet<double, int>> trip;
+  trip.reserve(size_t(m) * 12);
+  for (int e = 0; e < m; ++e) {
+    const double me = density_[e] * mesh_->volumes()[e] / 4.0;
+    for (int a = 0; a < 12; ++a)
+      trip.emplace_back(3 * T(e, a / 3) + a % 3, e, -me * v(T(e, a / 3), a % 3));
+  }
+  SpMat G(3 * v.rows(), m);
+  G.setFromTriplets(trip.begin(), trip.end());
+  return G;
+}
+
+}  // namespace matlearn::fem

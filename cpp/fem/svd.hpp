@@ -1,0 +1,10 @@
+#pragma once
+#include "common/types.hpp"
+
+namespace matlearn::fem {
+
+/// Rotation-variant SVD F = U diag(s) V^T with U, V proper rotations, s sorted descending in
+/// magnitude; an inverted F gets a negative smallest singular value.
+void rotation_variant_svd(const Mat3& F, Mat3& U, Vec3& s, Mat3& V);
+
+}  // namespace matlearn::fem

@@ -1,0 +1,122 @@
+#include "solvers/cholmod_solver.hpp"
+
+#include <suitesparse/cholmod.h>
+
+#include <string>
+
+namespace matlearn::solvers {
+
+namespace {
+cholmod_sparse view(const SpMat& A) {
+  cholmod_sparse s{};
+  s.nrow = A.rows();
+  s.ncol = A.cols();
+  s.nzmax = A.nonZeros();
+  s.p = const_cast<int*>(A.outerIndexPtr());
+  s.i = const_cast<int*>(A.innerIndexPtr());
+  s.x = const_cast<double*>(A.valuePtr());
+  s.stype = 1;
+  s.itype = CHOLMOD_INT;
+  s.xtype = CHOLMOD_REAL;
+  s.dtype = CHOLMOD_DOUBLE;
+  s.sorted = 1;
+  s.packed = 1;
+  return s;
+}
+}  // namespace
+
+CholmodSolver::CholmodSolver() {
+  common_ = reinterpret_cast<cholmod_common_struct*>(new cholmod_common);
+  cholmod_start(reinterpret_cast<cholmod_common*>(common_));
+  reinterpret_cast<cholmod_common*>(common_)->print = 0;
+}
+
+void CholmodSolver::release() {
+  auto* c = reinterpret_cast<cholmod_common*>(common_);
+  if (c) {
+    if (factor_) {
+      auto* L = reinterpret_cast<cholmod_factor*>(factor_);
+      cholmod_free_factor(&L, c);
+    }
+    cholmod_finish(c);
+    delete c;
+  }
+  common_ = nullptr;
+  factor_ = nullptr;
+}
+
+CholmodSolver::~CholmodSolver() { release(); }
+
+CholmodSolver::CholmodSolver(CholmodSolver&& o) noexcept
+    : common_(o.common_), factor_(o.factor_), n_(o.n_), factorized_(o.factorized_) {
+  o.common_ = nullptr;
+  o.factor_ = nullptr;
+}
+
+CholmodSolver& CholmodSolver::operator=(CholmodSolver&& o) noexcept {
+  if (this != &o) {
+    release();
+    common_ = o.common_;
+    factor_ = o.factor_;
+    n_ = o.n_;
+    factorized_ = o.factorized_;
+    o.common_ = nullptr;
+    o.factor_ = nullptr;
+  }
+  return *this;
+}
+
+void CholmodSolver::analyze(const SpMat& A) {
+  if (A.rows() != A.cols()) throw InvalidInput("CholmodSolver: matrix must be square");
+  auto* c = reinterpret_cast<cholmod_common*>(common_);
+  if (factor_) {
+    auto* L = reinterpret_cast<cholmod_factor*>(factor_);
+    cholmod_free_factor(&L, c);
+    factor_ = nullptr;
+  }
+  cholmod_sparse s = view(A);
+  cholmod_factor* L = cholmod_analyze(&s, c);
+  if (!L || c->status < CHOLMOD_OK)
+    throw NumericalError("CHOLMOD analyze failed (status " + std::to_string(c->status) + ")");
+  factor_ = reinterpret_cast<cholmod_factor_struct*>(L);
+  n_ = A.rows();
+  factorized_ = false;
+}
+
+void CholmodSolver::factorize(const SpMat& A) {
+  if (!factor_) analyze(A);
+  if (A.rows() != n_) throw InvalidInput("CholmodSolver: matrix size changed since analyze()");
+  auto* c = reinterpret_cast<cholmod_common*>(common_);
+  auto* L = reinterpret_cast<cholmod_factor*>(factor_);
+  cholmod_sparse s = view(A);
+  cholmod_factorize(&s, L, c);
+  factorized_ = false;
+  if (c->status == CHOLMOD_NOT_POSDEF || L->minor < L->n)
+    throw NumericalError("system matrix is not positive definite (CHOLMOD failed at column " +
+                         std::to_string(L->minor) + " of " + std::to_string(L->n) + ")");
+  if (c->status < CHOLMOD_OK)
+    throw NumericalError("CHOLMOD factorize failed (status " + std::to_string(c->status) + ")");
+  factorized_ = true;
+}
+
+VecX CholmodSolver::solve(const VecX& b) const {
+  if (!factorized_) throw std::logic_error("CholmodSolver: solve() called before factorize()");
+  if (b.size() != n_) throw InvalidInput("CholmodSolver: right-hand side has wrong size");
+  auto* c = reinterpret_cast<cholmod_common*>(common_);
+  auto* L = reinterpret_cast<cholmod_factor*>(factor_);
+  cholmod_dense bd{};
+  bd.nrow = n_;
+  bd.ncol = 1;
+  bd.nzmax = n_;
+  bd.d = n_;
+  bd.x = const_cast<double*>(b.data());
+  bd.xtype = CHOLMOD_REAL;
+  bd.dtype = CHOLMOD_DOUBLE;
+  cholmod_dense* x = cholmod_solve(CHOLMOD_A, L, &bd, c);
+  if (!x) throw NumericalError("CHOLMOD solve failed");
+  VecX out = Eigen::Map<VecX>(static_cast<double*>(x->x), n_);
+  cholmod_free_dense(&x, c);
+  return out;
+}
+
+}  // namespace matlearn::solvers

@@ -1,0 +1,218 @@
+#include "time/integrator.hpp"
+
+#include <sstream>
+
+namespace matlearn::time {
+
+Integrator::Integrator(std::shared_ptr<const fem::Model> model, const VecXi& fixed,
+                       double time_step, const Vec3& gravity, StepOptions options)
+    : model_(std::move(model)), fixed_(fixed), h_(time_step), gravity_(gravity), opts_(options) {
+  const int nv = model_->mesh().num_vertices();
+  if (!(h_ > 0) || !std::isfinite(h_)) throw InvalidInput("time_step must be a positive number (s)");
+  if (!gravity_.allFinite()) throw InvalidInput("gravity contains NaN or Inf");
+  if (fixed_.size() && (fixed_.minCoeff() < 0 || fixed_.maxCoeff() >= nv))
+    throw InvalidInput("fixed vertex index out of range [0, " + std::to_string(nv) + ")");
+  if (opts_.max_newton < 1) throw InvalidInput("max_newton must be >= 1");
+  x_ = model_->mesh().vertices();
+  v_ = MatX3::Zero(nv, 3);
+  const auto& X = model_->mesh().vertices();
+  size_ = (X.colwise().maxCoeff() - X.colwise().minCoeff()).norm();
+  rebuild_pattern();
+}
+
+void Integrator::set_state(const MatX3& x, const MatX3& v) {
+  model_->check_state(x, "x");
+  model_->check_state(v, "v");
+  x_ = x;
+  v_ = v;
+}
+
+void Integrator::set_prescribed(const VecXi& vertices) {
+  const int nv = model_->mesh().num_vertices();
+  if (vertices.size() && (vertices.minCoeff() < 0 || vertices.maxCoeff() >= nv))
+    throw InvalidInput("prescribed vertex index out of range [0, " + std::to_string(nv) + ")");
+  prescribed_ = vertices;
+  rebuild_pattern();
+}
+
+void Integrator::rebuild_pattern() {
+  const int nv = model_->mesh().num_vertices();
+  dof_map_ = VecXi::Zero(3 * nv);
+  for (int i = 0; i < fixed_.size(); ++i) dof_map_.segment<3>(3 * fixed_[i]).setConstant(-1);
+  for (int i = 0; i < prescribed_.size(); ++i) dof_map_.segment<3>(3 * prescribed_[i]).setConstant(-1);
+  n_free_ = 0;
+  for (int g = 0; g < 3 * nv; ++g)
+    if (dof_map_[g] >= 0) dof_map_[g] = n_free_++;
+  if (n_free_ == 0) throw InvalidInput("every vertex is fixed or prescribed: nothing to simulate");
+  assembler_ = std::make_unique<fem::SparseAssembler>(model_->mesh().tets(), dof_map_, n_free_, true);
+  A_ = assembler_->pattern();
+  solver_.analyze(A_);
+}
+
+void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
+  const int nv = model_->mesh().num_vertices();
+  if (f_ext.rows() != nv) throw InvalidInput("f_ext must have shape (#V, 3)");
+  if (prescribed_.size() > 0) {
+    if (!targets || targets->rows() != prescribed_.size())
+      throw InvalidInput("step: targets must have shape (" + std::to_string(prescribed_.size()) +
+                         ", 3) for the prescribed vertices");
+    if (!targets->allFinite()) throw InvalidInput("step: targets contain NaN or Inf");
+  }
+  const VecX& mass = model_->dof_mass();
+  const MatX3 x0 = x_, v0 = v_;
+  MatX3 v = v_;
+  for (int i = 0; i < fixed_.size(); ++i) v.row(fixed_[i]).setZero();
+  for (int i = 0; i < prescribed_.size(); ++i)
+    v.row(prescribed_[i]) = ((*targets).row(i) - x0.row(prescribed_[i])) / h_;
+  VecX fconst = as_dofs(f_ext);
+  for (int i = 0; i < nv; ++i) fconst.segment<3>(3 * i) += mass[3 * i] * gravity_;
+  fem::ElementState st;
+  const double v_ref = 1e-6 * size_ / h_;
+  last_iters_ = 0;
+  for (int it = 0; it < opts_.max_newton; ++it) {
+    MatX3 x = x0 + h_ * v;
+    model_->evaluate(x, v, fem::kForce | fem::kStiffness | fem::kDamping, true, st);
+    const VecX f = model_->gather_forces(st);
+    VecX g(n_free_);
+    const auto vd = as_dofs(v);
+    const auto v0d = as_dofs(v0);
+    for (int d = 0; d < 3 * nv; ++d)
+      if (dof_map_[d] >= 0) g[dof_map_[d]] = mass[d] * (vd[d] - v0d[d]) - h_ * (f[d] + fconst[d]);
+    assembler_->assemble(st.K, h_ * h_, st.D, h_, mass, 1.0, A_);
+    try {
+      solver_.factorize(A_);
+    } catch (const NumericalError& err) {
+      std::ostringstream os;
+      os << "step " << steps_ << ", Newton iteration " << it << ": " << err.what();
+      throw NumericalError(os.str());
+    }
+    const VecX dv = solver_.solve(-g);
+    if (!dv.allFinite()) {
+      std::ostringstream os;
+      os << "step " << steps_ << ": linear solve produced NaN (diverged)";
+      throw NumericalError(os.str());
+    }
+    auto vdm = as_dofs(v);
+    double vnorm2 = 0;
+    for (int d = 0; d < 3 * nv; ++d)
+      if (dof_map_[d] >= 0) {
+        vdm[d] += dv[dof_map_[d]];
+        vnorm2 += vdm[d] * vdm[d];
+      }
+    last_iters_ = it + 1;
+    if (dv.norm() <= opts_.tolerance * (std::sqrt(vnorm2) + v_ref)) break;
+  }
+  // A speed of 1e4 object sizes per step is no longer a simulation: report divergence.
+  if (!v.allFinite() || v.cwiseAbs().maxCoeff() * h_ > 1e4 * size_) {
+    std::ostringstream os;
+    os << "step " << steps_ << ": simulation diverged (velocities blew up; "
+       << "try a smaller time step or check the material parameters)";
+    throw NumericalError(os.str());
+  }
+  v_ = v;
+  x_ = x0 + h_ * v;
+  for (int i = 0; i < prescribed_.size(); ++i) x_.row(prescribed_[i]) = (*targets).row(i);
+  ++steps_;
+}
+
+MatX3 Integrator::simulate(int steps, const MatX3& f_ext, int record_every,
+                           const ProgressFn& progress, MatX3* velocities) {
+  if (steps < 0) throw InvalidInput("steps must be >= 0");
+  if (record_every < 1) throw InvalidInput("record_every must be >= 1");
+  const int nv = x_.rows();
+  const int frames = steps / record_every + 1;
+  MatX3 out(frames * nv, 3);
+  if (velocities) velocities->resize(frames * nv, 3);
+  out.topRows(nv) = x_;
+  if (velocities) velocities->topRows(nv) = v_;
+  for (int s = 1; s <= steps; ++s) {
+    step(f_ext);
+    if (s % record_every == 0) {
+      out.middleRows((s / record_every) * nv, nv) = x_;
+      if (velocities) velocities->middleRows((s / record_every) * nv, nv) = v_;
+    }
+    if (progress && (s % 20 == 0 || s == steps)) progress(s, steps);
+  }
+  return out;
+}
+
+MatX3 Integrator::simulate_constrained(const MatX3& targets, const MatX3& f_ext,
+                                       const ProgressFn& progress, MatX3* velocities) {
+  const int k = prescribed_.size();
+  if (k == 0) throw InvalidInput("simulate_constrained: call set_prescribed() first");
+  if (targets.rows() % k != 0)
+    throw InvalidInput("simulate_constrained: targets must have shape (steps, #prescribed, 3)");
+  const int steps = targets.rows() / k;
+  const int nv = x_.rows();
+  MatX3 out((steps + 1) * nv, 3);
+  if (velocities) velocities->resize((steps + 1) * nv, 3);
+  out.topRows(nv) = x_;
+  if (velocities) velocities->topRows(nv) = v_;
+  for (int s = 0; s < steps; ++s) {
+    const MatX3 t = targets.middleRows(s * k, k);
+    step(f_ext, &t);
+    out.middleRows((s + 1) * nv, nv) = x_;
+    if (velocities) velocities->middleRows((s + 1) * nv, nv) = v_;
+    if (progress && ((s + 1) % 20 == 0 || s + 1 == steps)) progress(s + 1, steps);
+  }
+  return out;
+}
+
+void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterations, double tol) {
+  const int nv = x_.rows();
+  if (f_ext.rows() != nv) throw InvalidInput("f_ext must have shape (#V, 3)");
+  if (load_steps < 1) throw InvalidInput("load_steps must be >= 1");
+  if (fixed_.size() == 0 && prescribed_.size() == 0)
+    throw InvalidInput("static_solve needs fixed vertices (a free body has no equilibrium)");
+  const VecX& mass = model_->dof_mass();
+  VecX fload = as_dofs(f_ext);
+  for (int i = 0; i < nv; ++i) fload.segment<3>(3 * i) += mass[3 * i] * gravity_;
+  const MatX3 zero_v = MatX3::Zero(nv, 3);
+  fem::ElementState st;
+  const VecX empty;
+  auto residual = [&](const MatX3& x, double scale, VecX& r) {
+    model_->evaluate(x, zero_v, fem::kForce | fem::kStiffness, true, st);
+    const VecX f = model_->gather_forces(st);
+    r.resize(n_free_);
+    for (int d = 0; d < 3 * nv; ++d)
+      if (dof_map_[d] >= 0) r[dof_map_[d]] = f[d] + scale * fload[d];
+  };
+  const double ref = fload.norm() + 1e-12;
+  for (int ls = 1; ls <= load_steps; ++ls) {
+    const double scale = double(ls) / load_steps;
+    VecX r;
+    residual(x_, scale, r);
+    int it = 0;
+    for (; it < max_iterations; ++it) {
+      if (r.norm() <= tol * ref) break;
+      assembler_->assemble(st.K, 1.0, {}, 0.0, empty, 0.0, A_);
+      try {
+        solver_.factorize(A_);
+      } catch (const NumericalError& err) {
+        throw NumericalError(std::string("static_solve: ") + err.what() +
+                             " (is the body clamped enough to be stable?)");
+      }
+      const VecX dx = solver_.solve(r);
+      // Backtracking on the residual norm keeps Newton safe far from equilibrium.
+      double t = 1.0, r0 = r.norm();
+      MatX3 xt;
+      for (int bt = 0; bt < 20; ++bt) {
+        xt = x_;
+        auto xd = as_dofs(xt);
+        for (int d = 0; d < 3 * nv; ++d)
+          if (dof_map_[d] >= 0) xd[d] += t * dx[dof_map_[d]];
+        residual(xt, scale, r);
+        if (r.allFinite() && r.norm() < r0) break;
+        t *= 0.5;
+      }
+      x_ = xt;
+    }
+    if (!r.allFinite() || r.norm() > 1e-3 * ref)
+      throw NumericalError("static_solve: Newton did not converge at load step " +
+                           std::to_string(ls) + " (relative residual " +
+                           std::to_string(r.norm() / ref) + "); try more load_steps");
+  }
+  v_.setZero();
+}
+
+}  // namespace matlearn::time

@@ -1,0 +1,80 @@
+#pragma once
+#include <functional>
+#include <memory>
+#include <vector>
+
+#include "common/types.hpp"
+#include "fem/model.hpp"
+#include "fem/sparse_assembler.hpp"
+#include "solvers/cholmod_solver.hpp"
+
+namespace matlearn::time {
+
+/// Called every few steps with (steps done, steps total); may throw to cancel.
+using ProgressFn = std::function<void(int, int)>;
+
+struct StepOptions {
+  int max_newton = 8;        ///< 1 = one linearised solve per step (Baraff-Witkin style)
+  double tolerance = 1e-7;   ///< Newton stops when |dv| <= tolerance * (|v| + v_ref)
+};
+
+/// Backward Euler for a Model with clamped vertices, gravity, external forces and optionally
+/// prescribed ("constrained") vertices that follow given trajectories (method.md section 4).
+/// Owns the state (x, v) and a CHOLMOD factorisation whose symbolic analysis is reused.
+class Integrator {
+ public:
+  Integrator(std::shared_ptr<const fem::Model> model, const VecXi& fixed, double time_step,
+             const Vec3& gravity, StepOptions options = {});
+
+  const fem::Model& model() const { return *model_; }
+  double time_step() const { return h_; }
+  const MatX3& x() const { return x_; }
+  const MatX3& v() const { return v_; }
+  void set_state(const MatX3& x, const MatX3& v);
+  int steps_taken() const { return steps_; }
+  const VecXi& fixed() const { return fixed_; }
+  const VecXi& prescribed() const { return prescribed_; }
+  StepOptions& options() { return opts_; }
+  /// Newton iterations used by the last step.
+  int last_iterations() const { return last_iters_; }
+
+  /// Vertices whose positions are prescribed at the end of each constrained step.
+  void set_prescribed(const VecXi& vertices);
+
+  /// One step with external force f_ext (#V x 3, N). targets: (#prescribed x 3) positions at
+  /// the end of the step (required iff prescribed vertices are set).
+  void step(const MatX3& f_ext, const MatX3* targets = nullptr);
+
+  /// `steps` steps under constant f_ext; returns positions at every `record_every`-th step
+  /// (including the initial state), stacked as (frames*#V x 3).
+  MatX3 simulate(int steps, const MatX3& f_ext, int record_every, const ProgressFn& progress = {},
+                 MatX3* velocities = nullptr);
+
+  /// One step per target frame: targets (steps*#prescribed x 3). Returns positions after each
+  /// step, initial state included, as ((steps+1)*#V x 3).
+  MatX3 simulate_constrained(const MatX3& targets, const MatX3& f_ext, const ProgressFn& progress = {},
+                             MatX3* velocities = nullptr);
+
+  /// Static equilibrium under f_ext + gravity from the current x, in load_steps increments.
+  /// Sets x to the solution and v to zero.
+  void static_solve(const MatX3& f_ext, int load_steps = 1, int max_iterations = 50,
+                    double tolerance = 1e-9);
+
+ private:
+  void rebuild_pattern();
+  std::shared_ptr<const fem::Model> model_;
+  VecXi fixed_, prescribed_;
+  double h_;
+  Vec3 gravity_;
+  StepOptions opts_;
+  MatX3 x_, v_;
+  int steps_ = 0, last_iters_ = 0;
+  VecXi dof_map_;  // global dof -> free index or -1
+  int n_free_ = 0;
+  std::unique_ptr<fem::SparseAssembler> assembler_;
+  solvers::CholmodSolver solver_;
+  SpMat A_;
+  double size_;
+};
+
+}  // namespace matlearn::time

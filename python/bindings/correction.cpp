@@ -1,0 +1,97 @@
+#include "common.hpp"
+#include "correction/correction.hpp"
+
+namespace matlearn::bindings {
+
+using correction::Correction;
+using correction::CorrectionOutput;
+
+/// A correction computed by a Python function fn(Fh (m,3), Fhdot (m,3)) returning
+/// (dPh (m,3), d_dFh (m,3,3), d_dFhdot (m,3,3) or None, dalpha (m,) or None). For tests.
+class PythonCorrection final : public Correction {
+ public:
+  explicit PythonCorrection(py::function fn) : fn_(std::move(fn)) {}
+  ~PythonCorrection() override {
+    py::gil_scoped_acquire gil;
+    fn_ = py::function();
+  }
+  bool thread_safe() const override { return false; }
+  void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override {
+    py::gil_scoped_acquire gil;
+    const long m = Fh.rows();
+    py::tuple r = fn_(Fh, Fhdot);
+    if (r.size() != 4) throw InvalidInput("python correction must return a 4-tuple");
+    out.dPh = as_matrix<3>(r[0], "correction dPh", m);
+    auto jac = [&](py::handle h, std::vector<Mat3>& J, const char* name) {
+      J.assign(m, Mat3::Zero());
+      if (h.is_none()) return;
+      auto a = py::array_t<double, py::array::c_style | py::array::forcecast>::ensure(h);
+      if (!a || a.ndim() != 3 || a.shape(0) != m || a.shape(1) != 3 || a.shape(2) != 3)
+        throw InvalidInput(std::string(name) + ": expected shape (m, 3, 3)");
+      for (long e = 0; e < m; ++e)
+        for (int i = 0; i < 3; ++i)
+          for (int j = 0; j < 3; ++j) J[e](i, j) = a.at(e, i, j);
+    };
+    jac(r[1], out.d_dFh, "correction d_dFh");
+    jac(r[2], out.d_dFhdot, "correction d_dFhdot");
+    out.dalpha = r[3].is_none() ? VecX::Zero(m) : VecX(as_matrix<1>(r[3], "correction dalpha", m));
+  }
+
+ private:
+  py::function fn_;
+};
+
+void define_correction(py::module_& m) {
+  py::class_<Correction, std::shared_ptr<Correction>>(m, "Correction")
+      .def(
+          "evaluate",
+          [](const Correction& c, const py::array& Fh, const py::array& Fhdot) {
+            const MatX3 a = as_matrix<3>(Fh, "Fh");
+            const MatX3 b = as_matrix<3>(Fhdot, "Fhdot", a.rows());
+            CorrectionOutput out;
+            c.evaluate(a, b, out);
+            const long n = a.rows();
+            py::array_t<double> J({n, 3L, 3L}), Jd({n, 3L, 3L});
+            for (long e = 0; e < n; ++e)
+              for (int i = 0; i < 3; ++i)
+                for (int j = 0; j < 3; ++j) {
+                  J.mutable_at(e, i, j) = out.d_dFh[e](i, j);
+                  Jd.mutable_at(e, i, j) = out.d_dFhdot[e](i, j);
+                }
+            return py::make_tuple(out.dPh, J, Jd, out.dalpha);
+          },
+          py::arg("Fh"), py::arg("Fhdot"),
+          "Evaluate for m elements: returns (dPh (m,3) Pa, d/dFh (m,3,3), d/dFhdot (m,3,3), "
+          "dalpha_K (m,) s).");
+
+  py::class_<correction::RbfCorrection, Correction, std::shared_ptr<correction::RbfCorrection>>(
+      m, "RbfCorrection")
+      .def(py::init([](const py::array& centers, const py::array& weights, const Mat3& linear,
+                       const Vec3& bias, const py::array& alpha_weights, double alpha_bias,
+                       double epsilon) {
+             const MatX3 c = as_matrix<3>(centers, "centers");
+             return std::make_shared<correction::RbfCorrection>(
+                 c, as_matrix<3>(weights, "weights", c.rows()), linear, bias,
+                 as_matrix<1>(alpha_weights, "alpha_weights"), alpha_bias, epsilon);
+           }),
+           py::arg("centers"), py::arg("weights"), py::arg("linear"), py::arg("bias"),
+           py::arg("alpha_weights"), py::arg("alpha_bias"), py::arg("epsilon"));
+
+  py::class_<correction::MlpCorrection, Correction, std::shared_ptr<correction::MlpCorrection>>(
+      m, "MlpCorrection")
+      .def(py::init([](const std::vector<std::pair<MatX, VecX>>& layers, const VecX& in_mean,
+                       const VecX& in_std, const VecX& out_mean, const VecX& out_std) {
+             std::vector<correction::DenseLayer> L;
+             for (auto& [W, b] : layers) L.push_back({W, b});
+             return std::make_shared<correction::MlpCorrection>(L, in_mean, in_std, out_mean, out_std);
+           }),
+           py::arg("layers"), py::arg("in_mean"), py::arg("in_std"), py::arg("out_mean"),
+           py::arg("out_std"),
+           "layers: list of (W (out x in), b (out)); ELU between layers; 6 inputs (Fh, Fhdot), "
+           "3 outputs.");
+
+  py::class_<PythonCorrection, Correction, std::shared_ptr<PythonCorrection>>(m, "PythonCorrection")
+      .def(py::init<py::function>(), py::arg("fn"));
+}
+
+}  // namespace matlearn::bindings

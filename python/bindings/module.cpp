@@ -1,0 +1,26 @@
+#include "common.hpp"
+
+PYBIND11_MODULE(_core, m) {
+  m.doc() = "matlearn C++ core: FEM, materials, implicit stepping, corrections (private API)";
+  // Dependency order: corrections are used by the FEM model, which the integrator steps.
+  auto corr = m.def_submodule("correction", "learned stress corrections (RBF, MLP, callback)");
+  matlearn::bindings::define_correction(corr);
+  auto fem = m.def_submodule("fem", "tet meshes, materials, assembly");
+  matlearn::bindings::define_fem(fem);
+  auto time = m.def_submodule("time", "backward Euler, constrained stepping, statics");
+  matlearn::bindings::define_time(time);
+  auto mesh = m.def_submodule("mesh", "TetGen tetrahedralisation");
+  matlearn::bindings::define_mesh(mesh);
+  m.def("build_info", []() {
+    py::dict d;
+#ifdef _OPENMP
+    d["openmp"] = true;
+#else
+    d["openmp"] = false;
+#endif
+    d["eigen"] = std::to_string(EIGEN_WORLD_VERSION) + "." + std::to_string(EIGEN_MAJOR_VERSION) +
+                 "." + std::to_string(EIGEN_MINOR_VERSION);
+    d["index_type"] = "int32";
+    return d;
+  });
+}
