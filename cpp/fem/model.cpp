@@ -145,7 +145,15 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
     }
     if (flags & kDamping) {
       Mat9 Dp = aK * dPdF_nom;
-      if (has_corr && !corr.d_dFhdot[e].isZero()) {
+      const bool rate_corr = has_corr && !corr.d_dFhdot[e].isZero();
+      if ((flags & kStiffness) && !has_corr && project_psd) {
+        // Same projected nominal tangent as K: reuse it instead of a second 12x12 product.
+        Mat12 De = aK * st.K[e];
+        De.diagonal().array() += st.alpha_M[e] * density_[e] * W / 4.0;
+        st.D[e] = De;
+        continue;
+      }
+      if (rate_corr) {
         // Rate-dependent correction: only its principal-diagonal block enters the tangent.
         Mat3 J = 0.5 * (corr.d_dFhdot[e] + corr.d_dFhdot[e].transpose());
         Dp += stress_derivative_from_principal(U, s, V, Vec3::Zero(), J, project_psd);

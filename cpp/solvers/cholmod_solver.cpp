@@ -75,7 +75,15 @@ void CholmodSolver::analyze(const SpMat& A) {
     factor_ = nullptr;
   }
   cholmod_sparse s = view(A);
+  c->supernodal = CHOLMOD_AUTO;
   cholmod_factor* L = cholmod_analyze(&s, c);
+  // Supernodal pays only once BLAS-3 blocks are big; below ~3e7 flops per factorisation the
+  // simplicial code was 2-3x faster here (1.5k DOFs: 10 ms vs 30 ms).
+  if (L && c->status >= CHOLMOD_OK && c->fl < 3e7 && L->is_super) {
+    cholmod_free_factor(&L, c);
+    c->supernodal = CHOLMOD_SIMPLICIAL;
+    L = cholmod_analyze(&s, c);
+  }
   if (!L || c->status < CHOLMOD_OK)
     throw NumericalError("CHOLMOD analyze failed (status " + std::to_string(c->status) + ")");
   factor_ = reinterpret_cast<cholmod_factor_struct*>(L);

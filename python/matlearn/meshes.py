@@ -1,0 +1,182 @@
+"""Tet meshes: procedural builders, file loading (meshio / trimesh + TetGen), validation.
+
+All lengths in metres. Every builder returns a :class:`TetMesh` (the C++ mesh with rest data).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from . import _core
+
+TetMesh = _core.fem.TetMesh
+
+# Six tets per hexahedral cell (Kuhn / Freudenthal split): conforming across neighbouring cells.
+_KUHN = np.array(
+    [[0, 1, 3, 7], [0, 1, 7, 5], [0, 5, 7, 4], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7]]
+)
+
+
+def _orient(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Swap two indices of every negatively oriented tet."""
+    d = vertices[tets[:, 1:]] - vertices[tets[:, :1]]
+    neg = np.linalg.det(d) < 0
+    tets = tets.copy()
+    tets[neg, 1], tets[neg, 2] = tets[neg, 2].copy(), tets[neg, 1].copy()
+    return tets
+
+
+def grid_tets(shape: tuple[int, int, int], size: tuple[float, float, float], origin=(0.0, 0.0, 0.0)):
+    """Vertices and tets of a box of `shape` cells (nx, ny, nz) and `size` (m)."""
+    nx, ny, nz = shape
+    if min(shape) < 1:
+        raise ValueError(f"grid shape must be positive, got {shape}")
+    xs = [np.linspace(o, o + s, n + 1) for o, s, n in zip(origin, size, shape)]
+    X, Y, Z = np.meshgrid(*xs, indexing="ij")
+    vertices = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    idx = np.arange((nx + 1) * (ny + 1) * (nz + 1)).reshape(nx + 1, ny + 1, nz + 1)
+    i, j, k = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
+    i, j, k = i.ravel(), j.ravel(), k.ravel()
+    corners = np.stack(
+        [idx[i + a, j + b, k + c] for c in (0, 1) for b in (0, 1) for a in (0, 1)], axis=1
+    )  # corner bit order: a + 2b + 4c
+    tets = corners[:, _KUHN].reshape(-1, 4)
+    return vertices, _orient(vertices, tets)
+
+
+def bar(length=0.2, width=0.04, height=0.04, cells=(10, 2, 2)) -> TetMesh:
+    """A box-shaped bar along +x starting at x = 0, centred on the x axis."""
+    V, T = grid_tets(cells, (length, width, height), origin=(0.0, -width / 2, -height / 2))
+    return TetMesh(V, T)
+
+
+def bar_with_tets(length=0.2, width=0.04, height=0.04, target_tets=1000) -> TetMesh:
+    """A bar whose cell counts are chosen (keeping cells near-cubic) for about `target_tets`."""
+    h = (length * width * height / (target_tets / 6.0)) ** (1.0 / 3.0)
+    cells = tuple(max(1, int(round(d / h))) for d in (length, width, height))
+    return bar(length, width, height, cells)
+
+
+def layered_bar(length=0.2, width=0.04, height=0.04, cells=(10, 2, 4)):
+    """A bar plus a per-tet layer label (0 bottom half, 1 top half, split in z)."""
+    mesh = bar(length, width, height, cells)
+    centroids = mesh.vertices[mesh.tets].mean(axis=1)
+    return mesh, (centroids[:, 2] > 0).astype(np.int64)
+
+
+def sphere(radius=0.05, max_volume=None, min_ratio=1.5, subdivisions=3) -> TetMesh:
+    """A tetrahedralised sphere centred at the origin (icosphere surface + TetGen)."""
+    import trimesh
+
+    surf = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    if max_volume is None:
+        max_volume = (radius / 4) ** 3
+    return tetrahedralize(surf.vertices, surf.faces, max_volume=max_volume, min_ratio=min_ratio)
+
+
+def capsule(radius=0.02, length=0.1, max_volume=None, min_ratio=1.5) -> TetMesh:
+    """A capsule along +x (trimesh surface + TetGen)."""
+    import trimesh
+
+    surf = trimesh.creation.capsule(height=length, radius=radius, count=[12, 12])
+    surf.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    if max_volume is None:
+        max_volume = (radius / 3) ** 3
+    return tetrahedralize(surf.vertices, surf.faces, max_volume=max_volume, min_ratio=min_ratio)
+
+
+def tetrahedralize(vertices, faces, max_volume: float = 0.0, min_ratio: float = 0.0) -> TetMesh:
+    """Tetrahedralise a closed surface with TetGen (volume bound in m^3, radius-edge bound)."""
+    V, T = _core.mesh.tetrahedralize(
+        np.asarray(vertices, float), np.asarray(faces, np.int64), max_volume or 0.0, min_ratio or 0.0
+    )
+    return TetMesh(V, T)
+
+
+SURFACE_SUFFIXES = {".obj", ".ply", ".stl", ".off"}
+VOLUME_SUFFIXES = {".msh", ".vtk", ".vtu", ".node", ".ele", ".mesh"}
+
+
+def load_mesh(path, max_volume: float | None = None, min_ratio: float | None = None) -> TetMesh:
+    """Load a tet mesh (.msh/.vtk/.vtu/TetGen .node+.ele) or tetrahedralise a closed surface
+    (.obj/.ply/.stl/.off) with TetGen."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix in SURFACE_SUFFIXES:
+        import trimesh
+
+        surf = trimesh.load(path, force="mesh", process=True)
+        if len(surf.faces) == 0:
+            raise ValueError(f"{path}: no triangles found")
+        if not surf.is_watertight:
+            raise ValueError(
+                f"{path}: surface is not closed (watertight); TetGen needs a closed, manifold surface"
+            )
+        if max_volume is None:
+            ext = np.ptp(surf.vertices, axis=0)
+            max_volume = float(np.prod(ext)) / 2000.0
+        return tetrahedralize(surf.vertices, surf.faces, max_volume, min_ratio or 1.5)
+    if suffix in (".node", ".ele"):
+        return _load_tetgen(path.with_suffix(""))
+    if suffix in VOLUME_SUFFIXES:
+        import meshio
+
+        m = meshio.read(path)
+        tets = [c.data for c in m.cells if c.type == "tetra"]
+        if not tets:
+            raise ValueError(f"{path}: no tetrahedra found (cell types: {[c.type for c in m.cells]})")
+        V = np.asarray(m.points, float)
+        if V.shape[1] == 2:
+            raise ValueError(f"{path}: 2-D points, expected 3-D")
+        T = np.concatenate(tets).astype(np.int64)
+        used = np.unique(T)
+        if len(used) != len(V):  # drop points not used by any tet (e.g. gmsh geometry points)
+            remap = -np.ones(len(V), np.int64)
+            remap[used] = np.arange(len(used))
+            V, T = V[used], remap[T]
+        return TetMesh(V, T)
+    raise ValueError(
+        f"{path}: unsupported mesh format '{suffix}' (volume: {sorted(VOLUME_SUFFIXES)}, "
+        f"surface: {sorted(SURFACE_SUFFIXES)})"
+    )
+
+
+def _load_tetgen(stem: Path) -> TetMesh:
+    node, ele = stem.with_suffix(".node"), stem.with_suffix(".ele")
+    for p in (node, ele):
+        if not p.exists():
+            raise FileNotFoundError(f"TetGen file not found: {p}")
+
+    def rows(p):
+        lines = [ln.split("#")[0].split() for ln in p.read_text().splitlines()]
+        return [ln for ln in lines if ln]
+
+    nl = rows(node)
+    n = int(nl[0][0])
+    pts = np.array([[float(v) for v in ln[1:4]] for ln in nl[1 : n + 1]])
+    first = int(nl[1][0])
+    el = rows(ele)
+    m = int(el[0][0])
+    tets = np.array([[int(v) for v in ln[1:5]] for ln in el[1 : m + 1]]) - first
+    return TetMesh(pts, tets)
+
+
+def save_mesh(mesh: TetMesh, path, cell_data: dict | None = None) -> None:
+    """Write a tet mesh with meshio (format from the suffix), with optional per-tet data."""
+    import meshio
+
+    cd = {k: [np.asarray(v)] for k, v in (cell_data or {}).items()}
+    meshio.write(path, meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)], cell_data=cd))
+
+
+def object_size(mesh: TetMesh) -> float:
+    """Rest bounding-box diagonal (m): the length error percentages refer to."""
+    return float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+
+
+def surface_vertices(mesh: TetMesh) -> np.ndarray:
+    """Indices of the vertices on the boundary surface."""
+    return np.unique(mesh.surface_faces)
