@@ -29,7 +29,7 @@ fi
 echo "== installing matlearn (C++ build, ~1-2 min) and dependencies"
 # torch is pinned to the CPU build (an unpinned torch pulls a multi-GB CUDA build).
 "$VENV/bin/python" -m pip install -q "torch==2.13.0"
-"$VENV/bin/python" -m pip install -q ".[learn,test]"
+"$VENV/bin/python" -m pip install -q ".[learn,test,scan]"
 
 case "$what" in
   demo)
