@@ -138,8 +138,11 @@ Eigen::Matrix<double, 9, 9> stress_derivative_from_principal(const Mat3& U, cons
                                                              const Mat3& V, const Vec3& Ph,
                                                              const Mat3& dPh_in, bool project_psd) {
   using Mat9 = Eigen::Matrix<double, 9, 9>;
-  Mat3 dPh = 0.5 * (dPh_in + dPh_in.transpose());
+  // Unprojected: keep dPh as given (a learned correction need not have a symmetric Jacobian, and
+  // the exact tangent is then non-symmetric). Projected: symmetrise, then clamp eigenvalues.
+  Mat3 dPh = dPh_in;
   if (project_psd) {
+    dPh = 0.5 * (dPh_in + dPh_in.transpose());
     Eigen::SelfAdjointEigenSolver<Mat3> es(dPh);
     dPh = es.eigenvectors() * es.eigenvalues().cwiseMax(0.0).asDiagonal() *
           es.eigenvectors().transpose();
