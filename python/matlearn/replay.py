@@ -1,0 +1,227 @@
+"""Replaying a recording with a model: initial state, forward simulation, predicted markers and
+the trajectory error (% of object size) used to score every model in matlearn.
+
+Initial state. A recording with `at_rest_initially` starts from the rest shape with zero
+velocity. Otherwise the start is a *held pose*: the vertices nearest the markers seen in frame 0
+(and the driven vertices) are prescribed at their observed displacement, the rest of the body
+is solved to static equilibrium (gravity included, loaded in increments), and the body is
+released from there. The initial velocity is zero by default, the paper's setting (objects are
+released from a held, deformed pose); `velocity="estimate"` instead estimates it by finite
+differences of the equilibrium shapes matched to frames 0 and 1, for recordings that start
+mid-motion.
+
+Drive points (recording extension keys `drive_rest`/`drive`) become prescribed vertices: the
+model vertices within half the drive points' spacing of some drive point (at least the nearest
+vertex of each drive point), following the drive displacement of their nearest drive points
+(inverse-distance weighted), interpolated linearly in time between recording samples.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .embedding import Embedding, embed_points
+from .recording import Recording
+
+
+# ---------------------------------------------------------------------------- drive points
+def drive_vertices(scene, rec: Recording) -> tuple[np.ndarray, np.ndarray]:
+    """Driven model vertices (k,) and their positions at the recording times (T, k, 3).
+    Empty (0,), (T, 0, 3) when the recording has no drive points."""
+    T = rec.num_frames
+    if not rec.has_drive:
+        return np.zeros(0, np.int64), np.zeros((T, 0, 3))
+    V = np.asarray(scene.mesh.vertices)
+    tree = cKDTree(rec.drive_rest)
+    if len(rec.drive_rest) > 1:
+        spacing = np.median(tree.query(rec.drive_rest, k=2)[0][:, 1])
+    else:
+        spacing = 0.0
+    dist, _ = tree.query(V)
+    chosen = set(np.flatnonzero(dist <= 0.5 * spacing + 1e-9 * scene.object_size).tolist())
+    chosen |= set(cKDTree(V).query(rec.drive_rest)[1].tolist())
+    fixed = set(np.asarray(scene.fixed).tolist())
+    idx = np.array(sorted(chosen - fixed), dtype=np.int64)
+    if len(idx) == 0:
+        raise ValueError("drive points map only to clamped vertices; nothing to drive")
+    disp = rec.drive - rec.drive_rest[None]  # (T, D, 3)
+    kq = min(4, len(rec.drive_rest))
+    d, nb = tree.query(V[idx], k=kq)
+    d, nb = d.reshape(len(idx), kq), nb.reshape(len(idx), kq)
+    w = 1.0 / np.maximum(d, 1e-12 * scene.object_size) ** 2
+    exact = d[:, 0] <= 1e-9 * scene.object_size
+    w[exact] = 0.0
+    w[exact, 0] = 1.0
+    w /= w.sum(axis=1, keepdims=True)
+    targets = V[idx][None] + np.einsum("kj,tkjd->tkd", w, disp[:, nb])
+    return idx, targets
+
+
+def interpolate_frames(times: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Linear interpolation of values (T, ...) sampled at `times` to the times `at` (held
+    constant outside the sampled span)."""
+    times = np.asarray(times, float)
+    at = np.asarray(at, float)
+    if len(times) == 1:
+        return np.repeat(values[:1], len(at), axis=0)
+    i = np.clip(np.searchsorted(times, at, side="right") - 1, 0, len(times) - 2)
+    w = np.clip((at - times[i]) / (times[i + 1] - times[i]), 0.0, 1.0)
+    w = w.reshape((-1,) + (1,) * (values.ndim - 1))
+    return (1 - w) * values[i] + w * values[i + 1]
+
+
+# ---------------------------------------------------------------------------- initial state
+def _held_pose(scene, model, rec: Recording, frame: int, embedding: Embedding, integ=None):
+    """Static equilibrium with marker-nearest and driven vertices prescribed at frame `frame`."""
+    V = np.asarray(scene.mesh.vertices)
+    fixed = set(np.asarray(scene.fixed).tolist())
+    seen = rec.seen[frame]
+    near = embedding.nearest_vertices()[seen]
+    disp = rec.markers[frame, seen] - rec.marker_rest[seen]
+    # Average the displacement over markers sharing a nearest vertex.
+    uniq, inv = np.unique(near, return_inverse=True)
+    vdisp = np.zeros((len(uniq), 3))
+    np.add.at(vdisp, inv, disp)
+    vdisp /= np.bincount(inv, minlength=len(uniq))[:, None]
+    didx, dtargets = drive_vertices(scene, rec)
+    target = dict(zip(uniq.tolist(), (V[uniq] + vdisp)))
+    target.update(zip(didx.tolist(), dtargets[frame]))  # drive wins over markers
+    idx = np.array(sorted(set(target) - fixed), dtype=np.int64)
+    n = scene.mesh.num_vertices
+    if len(idx) == 0:
+        return V.copy()
+    tpos = np.array([target[i] for i in idx])
+    integ = scene.integrator(model) if integ is None else integ
+    integ.set_prescribed(idx)
+    # Prescribe in increments so a large held deformation does not invert elements at once.
+    max_disp = np.abs(tpos - V[idx]).max()
+    incs = int(np.clip(np.ceil(max_disp / (0.05 * scene.object_size)), 1, 20))
+    x = V.copy()
+    zero_f = np.zeros((n, 3))
+    for s in range(1, incs + 1):
+        x[idx] = V[idx] + (s / incs) * (tpos - V[idx])
+        integ.set_state(x, np.zeros((n, 3)))
+        integ.static_solve(zero_f, load_steps=1)
+        x = np.array(integ.x)
+    integ.set_prescribed(np.zeros(0, np.int64))
+    return x
+
+
+def initial_state(scene, model, rec: Recording, embedding: Embedding | None = None,
+                  velocity: str = "zero") -> tuple[np.ndarray, np.ndarray]:
+    """(x0, v0), each (n, 3), at rec.times[0]; see the module docstring. velocity: "zero" or
+    "estimate"."""
+    n = scene.mesh.num_vertices
+    V = np.asarray(scene.mesh.vertices, float)
+    if velocity not in ("zero", "estimate"):
+        raise ValueError(f"velocity must be 'zero' or 'estimate', got {velocity!r}")
+    if rec.at_rest_initially:
+        return V.copy(), np.zeros((n, 3))
+    if rec.num_markers == 0 and not rec.has_drive:
+        raise ValueError(
+            "initial_state: the recording has no markers or drive points and is not at rest "
+            "initially; estimate the initial state from its clouds first"
+        )
+    emb = embedding if embedding is not None else embed_points(scene.mesh, rec.marker_rest)
+    integ = scene.integrator(model)
+    if not rec.seen[0].any() and not rec.has_drive:
+        raise ValueError("initial_state: no marker is seen in frame 0")
+    x0 = _held_pose(scene, model, rec, 0, emb, integ)
+    if velocity == "zero" or rec.num_frames < 2:
+        return x0, np.zeros((n, 3))
+    x1 = _held_pose(scene, model, rec, 1, emb, integ)
+    return x0, (x1 - x0) / (rec.times[1] - rec.times[0])
+
+
+# ---------------------------------------------------------------------------- simulation
+def simulation_times(scene, rec: Recording) -> np.ndarray:
+    """Step times covering the recording: times[0] + h * (0..S), S = ceil(span / h)."""
+    h = scene.time_step
+    steps = int(np.ceil((rec.times[-1] - rec.times[0]) / h - 1e-9))
+    return rec.times[0] + h * np.arange(steps + 1)
+
+
+def simulate_recording(scene, model, rec: Recording, progress=None, state=None,
+                       f_ext=None, max_newton: int = 8):
+    """Simulate over the recording's span at scene.time_step from `state` = (x0, v0) (default:
+    :func:`initial_state`), honouring clamped and driven vertices, in one C++ call. Returns
+    (sim_times (S+1,), X (S+1, n, 3), V (S+1, n, 3)). progress(done, total) is called from C++
+    every few steps."""
+    n = scene.mesh.num_vertices
+    x0, v0 = state if state is not None else initial_state(scene, model, rec)
+    f = np.zeros((n, 3)) if f_ext is None else np.asarray(f_ext, float)
+    sim_t = simulation_times(scene, rec)
+    integ = scene.integrator(model, max_newton=max_newton)
+    didx, dtargets = drive_vertices(scene, rec)
+    if len(didx):
+        integ.set_prescribed(didx)
+        x0 = np.array(x0, float)
+        x0[didx] = interpolate_frames(rec.times, dtargets, sim_t[:1])[0]
+        integ.set_state(x0, v0)
+        targets = interpolate_frames(rec.times, dtargets, sim_t[1:])
+        X, Vel = integ.simulate_constrained(targets, f, progress=progress)
+    else:
+        integ.set_state(x0, v0)
+        X, Vel = integ.simulate(len(sim_t) - 1, f, 1, progress=progress)
+    return sim_t, X, Vel
+
+
+def predict_markers(scene, model, rec: Recording, sim=None, embedding: Embedding | None = None,
+                    progress=None) -> np.ndarray:
+    """Model-predicted marker positions (T, K, 3) at rec.times: the simulated trajectory
+    (default :func:`simulate_recording`) through the markers' embedding, linear in time between
+    steps."""
+    emb = embedding if embedding is not None else embed_points(scene.mesh, rec.marker_rest)
+    sim_t, X, _ = sim if sim is not None else simulate_recording(scene, model, rec, progress)
+    P = emb.apply(X)  # (S+1, K, 3)
+    return interpolate_frames(sim_t, P, rec.times)
+
+
+def trajectory_error(pred: np.ndarray, rec, object_size: float) -> dict:
+    """Max and RMS marker error over seen markers and frames, in % of object_size.
+    rec: a Recording or an observed marker array (T, K, 3) with NaN = unseen."""
+    obs = rec.markers if isinstance(rec, Recording) else np.asarray(rec, float)
+    pred = np.asarray(pred, float)
+    if pred.shape != obs.shape:
+        raise ValueError(f"pred: expected shape {obs.shape} like the observed markers, got {pred.shape}")
+    if not object_size > 0:
+        raise ValueError(f"object_size must be > 0, got {object_size}")
+    seen = ~np.isnan(obs).any(axis=2)
+    err = np.linalg.norm(pred - obs, axis=2)[seen]
+    if len(err) == 0:
+        raise ValueError("trajectory_error: no seen marker to compare")
+    if not np.all(np.isfinite(err)):
+        raise ValueError("trajectory_error: prediction contains NaN/Inf at seen markers")
+    return {
+        "max_error_pct": float(100.0 * err.max() / object_size),
+        "rms_error_pct": float(100.0 * np.sqrt(np.mean(err**2)) / object_size),
+        "samples": int(len(err)),
+    }
+
+
+def combine_errors(errors: list[dict]) -> dict:
+    """Pool per-recording errors: max of maxima, RMS over all samples."""
+    if not errors:
+        raise ValueError("combine_errors: no errors to combine")
+    n = sum(e["samples"] for e in errors)
+    ms = sum(e["samples"] * e["rms_error_pct"] ** 2 for e in errors) / n
+    return {
+        "max_error_pct": max(e["max_error_pct"] for e in errors),
+        "rms_error_pct": float(np.sqrt(ms)),
+        "samples": n,
+    }
+
+
+def score(scene, model=None, role: str = "test", progress=None) -> dict:
+    """Replay every recording of `role` with `model` (default: the scene's nominal model) and
+    return {"recordings": [per-recording error dict], **pooled error}."""
+    model = model if model is not None else scene.model()
+    per = []
+    for rec in scene.recordings_with_role(role):
+        if rec.num_markers == 0:
+            continue
+        pred = predict_markers(scene, model, rec, progress=progress)
+        per.append(trajectory_error(pred, rec, scene.object_size))
+    if not per:
+        raise ValueError(f"score: the scene has no '{role}' recording with markers")
+    return {"recordings": per, **combine_errors(per)}
