@@ -70,8 +70,10 @@ double principal_energy(MaterialModel m, const Vec3& s, double mu, double lam,
       if (m == MaterialModel::Designed)
         for (const auto& ed : edits)
           for (int i = 0; i < 3; ++i)
+            // Integrated from the rest stretch 1, so the rest state has zero energy.
             psi += ed.amplitude * ed.half_width *
-                   (bump_int((s[i] - ed.center) / ed.half_width) - bump_int(-1.0));
+                   (bump_int((s[i] - ed.center) / ed.half_width) -
+                    bump_int((1.0 - ed.center) / ed.half_width));
       return psi;
     }
   }

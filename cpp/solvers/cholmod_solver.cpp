@@ -28,7 +28,12 @@ cholmod_sparse view(const SpMat& A) {
 CholmodSolver::CholmodSolver() {
   common_ = reinterpret_cast<cholmod_common_struct*>(new cholmod_common);
   cholmod_start(reinterpret_cast<cholmod_common*>(common_));
-  reinterpret_cast<cholmod_common*>(common_)->print = 0;
+  auto* c = reinterpret_cast<cholmod_common*>(common_);
+  c->print = 0;
+  // Simplicial factorisations default to LDL^T, which succeeds on indefinite matrices (only a
+  // zero pivot stops it). LL^T fails at the first non-positive pivot, which is what detects a
+  // non-SPD system (supernodal is always LL^T).
+  c->final_ll = 1;
 }
 
 void CholmodSolver::release() {
