@@ -9,6 +9,8 @@ PYBIND11_MODULE(_core, m) {
   matlearn::bindings::define_fem(fem);
   auto time = m.def_submodule("time", "backward Euler, constrained stepping, statics");
   matlearn::bindings::define_time(time);
+  auto obs = m.def_submodule("observation", "point-cloud correspondences and observation residuals");
+  matlearn::bindings::define_observation(obs);
   auto mesh = m.def_submodule("mesh", "TetGen tetrahedralisation");
   matlearn::bindings::define_mesh(mesh);
   m.def("build_info", []() {
