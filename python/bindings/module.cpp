@@ -9,6 +9,9 @@ PYBIND11_MODULE(_core, m) {
   matlearn::bindings::define_fem(fem);
   auto time = m.def_submodule("time", "backward Euler, constrained stepping, statics");
   matlearn::bindings::define_time(time);
+  // Space-time optimisation builds on the FEM model (forces and nominal tangents).
+  auto st = m.def_submodule("spacetime", "sparse reduced space-time optimisation, control forces");
+  matlearn::bindings::define_spacetime(st);
   auto obs = m.def_submodule("observation", "point-cloud correspondences and observation residuals");
   matlearn::bindings::define_observation(obs);
   auto mesh = m.def_submodule("mesh", "TetGen tetrahedralisation");
