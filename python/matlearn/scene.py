@@ -8,7 +8,10 @@ damping, no `[boundary]` means no clamped vertex, no `gravity` means [0, -9.81, 
 """
 from __future__ import annotations
 
-import tomllib
+try:
+    import tomllib
+except ImportError:  # Python < 3.11
+    import tomli as tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
