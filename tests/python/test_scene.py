@@ -1,0 +1,160 @@
+"""scene.toml (docs/formats.md): the documented example parses exactly; roundtrip; clear errors."""
+import textwrap
+
+import meshio
+import numpy as np
+import pytest
+
+from matlearn import meshes
+from matlearn.recording import Recording, save_recording
+from matlearn.scene import Scene, load_scene, save_scene, vertices_in_box
+
+FORMATS_EXAMPLE = textwrap.dedent(
+    """\
+    [mesh]
+    file = "bar.msh"          # tetrahedral mesh (.msh, .vtk, .vtu, TetGen .node/.ele) or a closed
+                              # surface (.obj, .ply, .stl, .off) to tetrahedralise with TetGen
+    max_volume = 1e-6         # optional, TetGen volume bound for surfaces (m^3)
+    min_ratio = 1.4           # optional, TetGen radius-edge quality bound
+
+    [material]                # the nominal model
+    model = "corotated"       # also: "neo_hookean", "stvk"
+    youngs_modulus = 1.0e5    # Pa
+    poisson_ratio = 0.40
+    density = 1000.0          # kg/m^3
+
+    [damping]                 # Rayleigh: damping force = -(alpha_mass M + alpha_stiffness K) v
+    alpha_mass = 0.0          # 1/s
+    alpha_stiffness = 0.01    # s
+
+    [boundary]
+    fixed_box = [[-1.0, -1.0, -1.0], [0.001, 1.0, 1.0]]   # rest-space box: vertices inside are clamped
+    # or: fixed_vertices = "fixed.txt"  (one 0-based vertex index per line)
+
+    [simulation]
+    time_step = 0.001         # s
+    gravity = [0.0, -9.81, 0.0]
+
+    [[recording]]
+    file = "train_0.npz"
+    role = "train"            # "train" recordings are learned from; "test" ones only scored
+    [[recording]]
+    file = "test_0.npz"
+    role = "test"
+    """
+)
+
+
+def _recording(path, mesh):
+    rest = mesh.vertices[:3]
+    save_recording(Recording([0.0, 0.01], rest, np.stack([rest, rest]), at_rest_initially=True), path)
+
+
+@pytest.fixture
+def example_dir(tmp_path):
+    mesh = meshes.bar(0.2, 0.04, 0.04, cells=(4, 1, 1))
+    meshio.write(tmp_path / "bar.msh", meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)]), file_format="gmsh")
+    _recording(tmp_path / "train_0.npz", mesh)
+    _recording(tmp_path / "test_0.npz", mesh)
+    (tmp_path / "scene.toml").write_text(FORMATS_EXAMPLE)
+    return tmp_path, mesh
+
+
+def test_formats_example_parses_exactly(example_dir):
+    d, mesh = example_dir
+    sc = load_scene(d / "scene.toml")
+    np.testing.assert_allclose(sc.mesh.vertices, mesh.vertices)
+    np.testing.assert_array_equal(sc.mesh.tets, mesh.tets)
+    m = sc.material
+    assert (m.model, m.youngs_modulus, m.poisson_ratio, m.density) == ("corotated", 1e5, 0.4, 1000.0)
+    assert (sc.damping.alpha_mass, sc.damping.alpha_stiffness) == (0.0, 0.01)
+    np.testing.assert_array_equal(sc.fixed, np.flatnonzero(mesh.vertices[:, 0] <= 0.001))
+    assert len(sc.fixed) == 4
+    assert sc.time_step == 0.001 and sc.gravity == (0.0, -9.81, 0.0)
+    assert sc.recordings == [(d / "train_0.npz", "train"), (d / "test_0.npz", "test")]
+    assert len(sc.recordings_with_role("train")) == 1 and len(sc.recordings_with_role("test")) == 1
+    assert sc.object_size == pytest.approx(np.sqrt(0.2**2 + 2 * 0.04**2))
+    assert sc.mesh_options == {"max_volume": 1e-6, "min_ratio": 1.4}
+    integ = sc.integrator()
+    np.testing.assert_array_equal(np.sort(integ.fixed), sc.fixed)
+    assert integ.time_step == 0.001
+
+
+def test_relative_paths_are_relative_to_the_scene_file(example_dir, monkeypatch, tmp_path_factory):
+    d, _ = example_dir
+    monkeypatch.chdir(tmp_path_factory.mktemp("elsewhere"))
+    assert load_scene(d / "scene.toml").recordings[0][0] == d / "train_0.npz"
+
+
+def test_roundtrip(example_dir, tmp_path_factory):
+    d, _ = example_dir
+    sc = load_scene(d / "scene.toml")
+    sc.damping.stiffness_poly = [0.5, -0.1]
+    out = tmp_path_factory.mktemp("out")
+    for mesh_file in ("m.vtu", "m.msh"):
+        back = load_scene(save_scene(sc, out / "scene.toml", mesh_file=mesh_file))
+        np.testing.assert_allclose(back.mesh.vertices, sc.mesh.vertices)
+        np.testing.assert_array_equal(back.mesh.tets, sc.mesh.tets)
+        np.testing.assert_array_equal(back.fixed, sc.fixed)
+        assert back.material == sc.material and back.damping == sc.damping
+        assert back.gravity == sc.gravity and back.time_step == sc.time_step
+        assert back.recordings == sc.recordings and back.fixed_box == sc.fixed_box
+
+
+def test_fixed_vertices_file(example_dir):
+    d, mesh = example_dir
+    (d / "fixed.txt").write_text("0\n3\n7\n")
+    text = FORMATS_EXAMPLE.replace(
+        "fixed_box = [[-1.0, -1.0, -1.0], [0.001, 1.0, 1.0]]", 'fixed_vertices = "fixed.txt"'
+    )
+    (d / "scene.toml").write_text(text)
+    sc = load_scene(d / "scene.toml")
+    np.testing.assert_array_equal(sc.fixed, [0, 3, 7])
+    # Without a box the clamp is saved as a vertex list.
+    back = load_scene(save_scene(sc, d / "copy" / "scene.toml"))
+    np.testing.assert_array_equal(back.fixed, [0, 3, 7])
+
+
+@pytest.mark.parametrize(
+    "old, new, err, match",
+    [
+        ('file = "bar.msh"', 'file = "missing.msh"', FileNotFoundError, "missing.msh"),
+        ('file = "test_0.npz"', 'file = "gone.npz"', FileNotFoundError, "gone.npz"),
+        ("youngs_modulus = 1.0e5    # Pa\n", "", ValueError, "youngs_modulus"),
+        ("time_step = 0.001", "dt = 0.001", ValueError, "time_step"),
+        ("[-1.0, -1.0, -1.0], [0.001, 1.0, 1.0]", "[5.0, 5.0, 5.0], [6.0, 6.0, 6.0]", ValueError, "no mesh vertex"),
+        ('model = "corotated"', 'model = "rubber"', ValueError, "unknown material model"),
+        ('role = "test"', 'role = "validation"', ValueError, "role"),
+        ("[simulation]", "[simulationx]", ValueError, r"\[simulation\]"),
+        ("gravity = [0.0, -9.81, 0.0]", "gravity = [0.0, -9.81]", ValueError, "gravity"),
+        ("density = 1000.0 ", "density = 1000.0 = ", ValueError, "invalid TOML"),
+    ],
+)
+def test_errors(example_dir, old, new, err, match):
+    d, _ = example_dir
+    assert old in FORMATS_EXAMPLE
+    (d / "scene.toml").write_text(FORMATS_EXAMPLE.replace(old, new))
+    with pytest.raises(err, match=match):
+        load_scene(d / "scene.toml")
+
+
+def test_missing_scene_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="scene file not found"):
+        load_scene(tmp_path / "scene.toml")
+
+
+def test_vertices_in_box():
+    V = np.array([[0.0, 0, 0], [1, 1, 1], [0.5, 2, 0]])
+    np.testing.assert_array_equal(vertices_in_box(V, [[1, 1, 1], [0, 0, 0]]), [0, 1])
+    with pytest.raises(ValueError, match="box"):
+        vertices_in_box(V, [0, 0, 0, 1, 1, 1])
+
+
+def test_scene_validation():
+    m = meshes.bar(cells=(1, 1, 1))
+    from matlearn.materials import Material
+
+    with pytest.raises(ValueError, match="time_step"):
+        Scene(m, Material(), time_step=0.0)
+    with pytest.raises(ValueError, match="out of range"):
+        Scene(m, Material(), fixed=[100])
