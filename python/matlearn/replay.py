@@ -91,6 +91,10 @@ def _held_pose(scene, model, rec: Recording, frame: int, embedding: Embedding, i
     if len(idx) == 0:
         return V.copy()
     tpos = np.array([target[i] for i in idx])
+    if len(idx) + len(fixed) == n:  # every free vertex observed: nothing to solve for
+        x = V.copy()
+        x[idx] = tpos
+        return x
     integ = scene.integrator(model) if integ is None else integ
     integ.set_prescribed(idx)
     # Prescribe in increments so a large held deformation does not invert elements at once.

@@ -1,0 +1,101 @@
+"""`matlearn simulate` end to end on a tiny bar: recording, VTU series, markers, errors."""
+import meshio
+import numpy as np
+import pytest
+
+from matlearn import cli, meshes
+from matlearn.materials import Damping, Material
+from matlearn.recording import Recording, load_recording, save_recording
+from matlearn.scene import Scene, save_scene, vertices_in_box
+
+CLAMP = [[-1, -1, -1], [1e-3, 1, 1]]
+TIP_BOX = ["0.199", "-1", "-1", "1", "1", "1"]
+
+
+@pytest.fixture
+def scene_path(tmp_path):
+    mesh = meshes.bar(0.2, 0.04, 0.04, cells=(5, 1, 1))
+    scene = Scene(mesh, Material(youngs_modulus=2e5), Damping(alpha_stiffness=0.005),
+                  vertices_in_box(mesh.vertices, CLAMP), 1e-3, fixed_box=CLAMP)
+    return save_scene(scene, tmp_path / "scene.toml"), scene
+
+
+def test_release_writes_recording_and_vtu(scene_path, tmp_path, capsys):
+    path, scene = scene_path
+    out, vtu = tmp_path / "rec.npz", tmp_path / "vtu"
+    rc = cli.main(["simulate", str(path), "--load", "0", "0.4", "0", "--load-box", *TIP_BOX,
+                   "--release", "--duration", "0.05", "--frame-rate", "200", "--all-surface",
+                   "--out", str(out), "--vtu", str(vtu)])
+    assert rc == 0
+    rec = load_recording(out)
+    np.testing.assert_allclose(rec.times, np.arange(11) / 200.0, atol=1e-12)
+    assert not rec.at_rest_initially
+    mesh = scene.mesh
+    np.testing.assert_allclose(rec.marker_rest, mesh.vertices[meshes.surface_vertices(mesh)])
+    # Frame 0 is the static equilibrium under the tip load (computed independently here).
+    model, integ = scene.model(), scene.integrator()
+    n = mesh.num_vertices
+    tip = vertices_in_box(mesh.vertices, [[0.199, -1, -1], [1, 1, 1]])
+    f = np.zeros((n, 3))
+    f[tip, 1] = 0.4 * model.vertex_mass[tip] / model.vertex_mass[tip].sum()
+    integ.static_solve(f, load_steps=5)
+    np.testing.assert_allclose(rec.markers[0], np.asarray(integ.x)[meshes.surface_vertices(mesh)], atol=1e-8)
+    assert rec.markers[0, :, 1].max() > 0.001  # held up by the load, then released
+    # The ParaView series: a .pvd listing every frame, each .vtu holding the deformed mesh.
+    pvd = (vtu / "frame.pvd").read_text()
+    assert pvd.count("<DataSet") == 11 and 'timestep="0.05"' in pvd
+    last = meshio.read(vtu / "frame_00010.vtu")
+    np.testing.assert_allclose(last.points, rec.markers[-1], atol=1e-10)  # every vertex is a marker
+    np.testing.assert_allclose(last.point_data["displacement"], rec.markers[-1] - mesh.vertices, atol=1e-10)
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_constant_load_from_rest_with_given_markers(scene_path, tmp_path):
+    path, scene = scene_path
+    pts = tmp_path / "points.txt"
+    np.savetxt(pts, [[0.2, 0.0, 0.0], [0.1, 0.02, 0.0]])
+    out = tmp_path / "rec.npz"
+    assert cli.main(["simulate", str(path), "--load", "0", "-0.2", "0", "--duration", "0.02",
+                     "--markers", str(pts), "--out", str(out), "--quiet"]) == 0
+    rec = load_recording(out)
+    assert rec.at_rest_initially and rec.num_frames == 21 and rec.num_markers == 2
+    np.testing.assert_allclose(rec.markers[0], np.loadtxt(pts))
+    assert rec.markers[-1, 0, 1] < -1e-4  # gravity and the load pull the tip down
+
+
+def test_default_markers_come_from_the_scene_recording(scene_path, tmp_path):
+    path, scene = scene_path
+    rest = np.array([[0.2, 0.02, 0.02], [0.15, -0.02, 0.0], [0.05, 0.0, 0.02]])
+    save_recording(Recording([0.0, 0.01], rest, np.stack([rest, rest])), tmp_path / "train_0.npz")
+    scene.recordings = [(tmp_path / "train_0.npz", "train")]
+    save_scene(scene, path)
+    out = tmp_path / "sim.npz"
+    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 0
+    rec = load_recording(out)
+    np.testing.assert_allclose(rec.marker_rest, rest)
+    np.testing.assert_allclose(rec.times[-1], 0.01)  # duration defaults to the recording's span
+    # --replay 0 replays that recording (from its estimated held pose) at its times.
+    assert cli.main(["simulate", str(path), "--replay", "0", "--out", str(out), "--quiet"]) == 0
+    np.testing.assert_allclose(load_recording(out).times, [0.0, 0.01])
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--release"], "--release needs --load"),
+        (["--load", "0", "1", "0", "--load-box", "5", "5", "5", "6", "6", "6"], "no free vertex"),
+        (["--duration", "-1"], "--duration must be > 0"),
+        (["--markers", "nope.txt"], "not found"),
+        (["--replay", "3"], "--replay 3"),
+    ],
+)
+def test_errors_are_reported(scene_path, tmp_path, capsys, extra, message):
+    path, _ = scene_path
+    rc = cli.main(["simulate", str(path), "--out", str(tmp_path / "x.npz"), "--quiet", *extra])
+    assert rc == 2
+    assert message in capsys.readouterr().err
+
+
+def test_missing_scene(tmp_path, capsys):
+    assert cli.main(["simulate", str(tmp_path / "none.toml"), "--out", str(tmp_path / "x.npz")]) == 2
+    assert "scene file not found" in capsys.readouterr().err
