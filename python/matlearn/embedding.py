@@ -46,7 +46,10 @@ class Embedding:
             return np.einsum("kj,kjd->kd", self.bary, X[self.vertices])
         if X.ndim != 3 or X.shape[-1] != 3:
             raise ValueError(f"X: expected shape (n, 3) or (T, n, 3), got {X.shape}")
-        return np.einsum("kj,tkjd->tkd", self.bary, X[:, self.vertices])
+        T, n = X.shape[:2]
+        # One sparse product over all frames: (K x n) @ (n x 3T), no (T, K, 4, 3) temporary.
+        Y = self.matrix(n) @ np.ascontiguousarray(X.transpose(1, 0, 2)).reshape(n, 3 * T)
+        return np.ascontiguousarray(Y.reshape(-1, T, 3).transpose(1, 0, 2))
 
     def nearest_vertices(self) -> np.ndarray:
         """(K,) the vertex carrying the largest weight of each point."""

@@ -177,8 +177,9 @@ def predict_markers(scene, model, rec: Recording, sim=None, embedding: Embedding
     steps."""
     emb = embedding if embedding is not None else embed_points(scene.mesh, rec.marker_rest)
     sim_t, X, _ = sim if sim is not None else simulate_recording(scene, model, rec, progress)
-    P = emb.apply(X)  # (S+1, K, 3)
-    return interpolate_frames(sim_t, P, rec.times)
+    if rec.num_frames < len(sim_t):  # both maps are linear: apply the cheaper one first
+        return emb.apply(interpolate_frames(sim_t, X, rec.times))
+    return interpolate_frames(sim_t, emb.apply(X), rec.times)
 
 
 def trajectory_error(pred: np.ndarray, rec, object_size: float) -> dict:

@@ -153,7 +153,8 @@ def make_case(out_dir, name: str, truth_mesh, truth_material: Material, truth_da
               motions: list, marker_fraction: float = 1.0, noise: float = 0.0, seed: int = 0,
               frame_rate: float | None = None, time_step: float = 1e-3, gravity=DEFAULT_GRAVITY,
               truth_correction=None, truth_model=None, truth_fixed_box=None, dropout: float = 0.0,
-              extra: dict | None = None, progress: bool = False, mesh_file: str = "mesh.vtu") -> Path:
+              extra: dict | None = None, progress: bool = False, mesh_file: str = "mesh.vtu",
+              simulate_truth=None) -> Path:
     """Build case `out_dir/name/` and return the path of its `scene.toml`.
 
     The truth (truth_mesh with truth_material/damping, optionally a correction or a ready
@@ -162,7 +163,10 @@ def make_case(out_dir, name: str, truth_mesh, truth_material: Material, truth_da
     surface vertices (at least 3), the same set in every recording, sampled at `frame_rate` Hz
     (default: every step), with Gaussian noise of std `noise` (m) and a seeded fraction `dropout`
     of marker-frames unseen (NaN). The scene gets the nominal model on model_mesh and fixed_box;
-    recordings are named <role>_<i>.npz. `extra` is merged into truth.json."""
+    recordings are named <role>_<i>.npz. `extra` is merged into truth.json.
+
+    `simulate_truth` replaces :func:`simulate_motion` (same arguments and result) for a "reality"
+    the model classes cannot express (e.g. hysteresis, a moving support)."""
     if not motions:
         raise ValueError("make_case needs at least one Motion")
     if not 0 < marker_fraction <= 1:
@@ -191,7 +195,8 @@ def make_case(out_dir, name: str, truth_mesh, truth_material: Material, truth_da
     recordings, rec_info, counts = [], [], {"train": 0, "test": 0}
     for i, motion in enumerate(motions):
         bar = ProgressBar(f"{name} motion {i} ({motion.kind})", enabled=progress)
-        sim = simulate_motion(truth_mesh, truth_model, truth_fixed, time_step, gravity, motion, bar)
+        sim = (simulate_truth or simulate_motion)(truth_mesh, truth_model, truth_fixed, time_step,
+                                                  gravity, motion, bar)
         bar.close()
         if frame_rate is None:
             times = sim["times"]
