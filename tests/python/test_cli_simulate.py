@@ -87,6 +87,7 @@ def test_default_markers_come_from_the_scene_recording(scene_path, tmp_path):
         (["--duration", "-1"], "--duration must be > 0"),
         (["--markers", "nope.txt"], "not found"),
         (["--replay", "3"], "--replay 3"),
+        (["--model", "no_such_run"], "model run directory not found"),
     ],
 )
 def test_errors_are_reported(scene_path, tmp_path, capsys, extra, message):

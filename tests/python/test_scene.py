@@ -158,3 +158,19 @@ def test_scene_validation():
         Scene(m, Material(), time_step=0.0)
     with pytest.raises(ValueError, match="out of range"):
         Scene(m, Material(), fixed=[100])
+
+
+def test_surface_mesh_is_tetrahedralised_with_the_scene_bounds(tmp_path):
+    import trimesh
+
+    trimesh.creation.box(extents=(0.1, 0.02, 0.02)).export(tmp_path / "box.obj")
+    text = (
+        '[mesh]\nfile = "box.obj"\nmax_volume = 2e-7\nmin_ratio = 1.5\n'
+        '[material]\nmodel = "neo_hookean"\nyoungs_modulus = 2e5\npoisson_ratio = 0.3\ndensity = 900.0\n'
+        "[boundary]\nfixed_box = [[-1, -1, -1], [-0.049, 1, 1]]\n[simulation]\ntime_step = 0.002\n"
+    )
+    (tmp_path / "scene.toml").write_text(text)
+    sc = load_scene(tmp_path / "scene.toml")
+    assert sc.mesh.rest_volumes.max() <= 2e-7 * (1 + 1e-9)
+    assert sc.mesh.rest_volumes.sum() == pytest.approx(0.1 * 0.02 * 0.02, rel=1e-9)
+    assert sc.gravity == (0.0, -9.81, 0.0) and sc.damping.alpha_stiffness == 0.0 and len(sc.fixed) >= 4

@@ -15,14 +15,14 @@ from ..scene import load_scene, vertices_in_box
 
 def load_correction(run_dir):
     """The learned correction of a `matlearn learn` run directory (matlearn.learning.load_model)."""
+    if not Path(run_dir).is_dir():
+        raise FileNotFoundError(f"model run directory not found: {run_dir}")
     try:
         from ..learning import load_model
     except ImportError as err:
         raise ValueError(
             f"--model needs matlearn.learning.load_model, which is not available ({err})"
         ) from err
-    if not Path(run_dir).exists():
-        raise FileNotFoundError(f"model run directory not found: {run_dir}")
     return load_model(run_dir)
 
 
