@@ -123,6 +123,43 @@ def _face_owner(tets: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
     return tet, loc
 
 
+def _search_tets(V, tets, tree, P, idx, k, tet, bary) -> None:
+    """For points idx: the first of their k nearest-centroid tets that contains them (in place)."""
+    if len(idx) == 0 or k == 0:
+        return
+    _, cand = tree.query(P[idx], k=k)
+    cand = cand.reshape(len(idx), k)
+    for j in range(k):  # loop over candidate rank, vectorised over points
+        left = np.flatnonzero(tet[idx] < 0)
+        if len(left) == 0:
+            break
+        pts = idx[left]
+        b = _tet_bary(V, tets, cand[left, j], P[pts])
+        ok = b.min(axis=1) >= -_INSIDE_TOL
+        tet[pts[ok]] = cand[left[ok], j]
+        bary[pts[ok]] = b[ok]
+
+
+def _closest_surface(V, faces, P, k: int = 32):
+    """Closest surface triangle of each point among the k with the nearest centroids:
+    (face index (p,), barycentric weights (p, 3), distance (p,))."""
+    k = min(len(faces), k)
+    _, fcand = cKDTree(V[faces].mean(axis=1)).query(P, k=k)
+    fcand = fcand.reshape(len(P), k)
+    best_d = np.full(len(P), np.inf)
+    best_f = np.zeros(len(P), np.int64)
+    best_w = np.zeros((len(P), 3))
+    for j in range(k):
+        f = fcand[:, j]
+        A, B, C = (V[faces[f, i]] for i in range(3))
+        w = _closest_on_triangles(P, A, B, C)
+        q = w[:, :1] * A + w[:, 1:2] * B + w[:, 2:] * C
+        d = np.linalg.norm(P - q, axis=1)
+        better = d < best_d
+        best_d[better], best_f[better], best_w[better] = d[better], f[better], w[better]
+    return best_f, best_w, best_d
+
+
 def embed_points(mesh, points, candidates: int = 16) -> Embedding:
     """Embed rest-space points (K, 3) in `mesh` (a TetMesh or anything with .vertices, .tets,
     .surface_faces)."""
@@ -139,53 +176,33 @@ def embed_points(mesh, points, candidates: int = 16) -> Embedding:
     if K == 0:
         return Embedding(tet, np.zeros((0, 4), np.int64), bary, np.zeros(0, bool), np.zeros(0))
 
-    # 1) Containing tet among the nearest tet centroids, then brute force for the rest.
+    # 1) Containing tet among the nearest tet centroids.
     centroids = V[tets].mean(axis=1)
-    k = min(candidates, m)
-    _, cand = cKDTree(centroids).query(P, k=k)
-    cand = cand.reshape(K, k)
-    for j in range(k):  # k small: loop over candidate rank, vectorised over points
-        todo = np.flatnonzero(tet < 0)
-        if len(todo) == 0:
-            break
-        b = _tet_bary(V, tets, cand[todo, j], P[todo])
-        ok = b.min(axis=1) >= -_INSIDE_TOL
-        tet[todo[ok]] = cand[todo[ok], j]
-        bary[todo[ok]] = b[ok]
-    todo = np.flatnonzero(tet < 0)
-    if len(todo) and len(todo) * m <= 5e7:  # a point far from its nearest centroids (slivers)
-        for i in todo:
-            b = _tet_bary(V, tets, np.arange(m), np.broadcast_to(P[i], (m, 3)))
-            j = np.argmax(b.min(axis=1))
-            if b[j].min() >= -_INSIDE_TOL:
-                tet[i], bary[i] = j, b[j]
-    inside = tet >= 0
-    distance = np.zeros(K)
+    tree = cKDTree(centroids)
+    _search_tets(V, tets, tree, P, np.arange(K), min(candidates, m), tet, bary)
 
-    # 2) Outside points: closest surface triangle (candidates by triangle-centroid distance).
-    out = np.flatnonzero(~inside)
-    if len(out):
-        faces = np.asarray(mesh.surface_faces, np.int64)
-        ftet, floc = _face_owner(tets, faces)
-        fc = V[faces].mean(axis=1)
-        # The closest triangle is among those whose centroid is within (d_min + max circumradius).
-        kf = min(len(faces), 32)
-        _, fcand = cKDTree(fc).query(P[out], k=kf)
-        fcand = fcand.reshape(len(out), kf)
-        best_d = np.full(len(out), np.inf)
-        best_f = np.zeros(len(out), np.int64)
-        best_w = np.zeros((len(out), 3))
-        for j in range(kf):
-            f = fcand[:, j]
-            A, B, C = (V[faces[f, i]] for i in range(3))
-            w = _closest_on_triangles(P[out], A, B, C)
-            q = w[:, :1] * A + w[:, 1:2] * B + w[:, 2:] * C
-            d = np.linalg.norm(P[out] - q, axis=1)
-            better = d < best_d
-            best_d[better], best_f[better], best_w[better] = d[better], f[better], w[better]
-        tet[out] = ftet[best_f]
-        b = np.zeros((len(out), 4))
-        np.put_along_axis(b, floc[best_f], best_w, axis=1)
-        bary[out] = b
-        distance[out] = best_d
+    # 2) The rest: closest surface triangle. A point whose closest point lies inside a face, on
+    # the face's outer side, is outside the mesh; the others get a wide tet search first.
+    faces = np.asarray(mesh.surface_faces, np.int64)
+    distance = np.zeros(K)
+    inside = np.ones(K, bool)
+    rest = np.flatnonzero(tet < 0)
+    if len(rest):
+        f, w, d = _closest_surface(V, faces, P[rest])
+        A, B, C = (V[faces[f, i]] for i in range(3))
+        normal = np.cross(B - A, C - A)
+        q = w[:, :1] * A + w[:, 1:2] * B + w[:, 2:] * C
+        clearly_out = (w.min(axis=1) > 1e-9) & (((P[rest] - q) * normal).sum(axis=1) > 0)
+        unsure = rest[~clearly_out]
+        _search_tets(V, tets, tree, P, unsure, min(8 * candidates, m), tet, bary)
+        still = tet[rest] < 0
+        inside[rest[still]] = False
+        out, f, w, d = rest[still], f[still], w[still], d[still]
+        if len(out):
+            ftet, floc = _face_owner(tets, faces)
+            tet[out] = ftet[f]
+            b = np.zeros((len(out), 4))
+            np.put_along_axis(b, floc[f], w, axis=1)
+            bary[out] = b
+            distance[out] = d
     return Embedding(tet, tets[tet], bary, inside, distance)
