@@ -5,7 +5,8 @@ Initial state. A recording with `at_rest_initially` starts from the rest shape w
 velocity. Otherwise the start is a *held pose*: the vertices nearest the markers seen in frame 0
 (and the driven vertices) are prescribed at their observed displacement, the rest of the body
 is solved to static equilibrium (gravity included, loaded in increments), and the body is
-released from there. The initial velocity is zero by default, the paper's setting (objects are
+released from there; a few refinement passes then shift each marker's vertex by the marker's
+remaining misfit so that markers between vertices are matched too. The initial velocity is zero by default, the paper's setting (objects are
 released from a held, deformed pose); `velocity="estimate"` instead estimates it by finite
 differences of the equilibrium shapes matched to frames 0 and 1, for recordings that start
 mid-motion.
@@ -71,8 +72,11 @@ def interpolate_frames(times: np.ndarray, values: np.ndarray, at: np.ndarray) ->
 
 
 # ---------------------------------------------------------------------------- initial state
-def _held_pose(scene, model, rec: Recording, frame: int, embedding: Embedding, integ=None):
-    """Static equilibrium with marker-nearest and driven vertices prescribed at frame `frame`."""
+def _held_pose(scene, model, rec: Recording, frame: int, embedding: Embedding, integ=None,
+               refine: int = 3):
+    """Static equilibrium with marker-nearest and driven vertices prescribed at frame `frame`.
+    `refine` passes then move each marker's vertex by the marker's remaining misfit (divided by
+    the vertex's weight) and re-solve, so off-vertex markers are matched too."""
     V = np.asarray(scene.mesh.vertices)
     fixed = set(np.asarray(scene.fixed).tolist())
     seen = rec.seen[frame]
@@ -107,14 +111,28 @@ def _held_pose(scene, model, rec: Recording, frame: int, embedding: Embedding, i
         integ.set_state(x, np.zeros((n, 3)))
         integ.static_solve(zero_f, load_steps=1)
         x = np.array(integ.x)
+    # Refinement: only marker vertices (not driven, not clamped) are corrected.
+    pos = {v: i for i, v in enumerate(idx.tolist())}
+    rows = np.array([pos.get(v, -1) for v in uniq.tolist()])
+    movable = (rows >= 0) & ~np.isin(uniq, didx)
+    wmax = embedding.bary.max(axis=1)[seen]
+    for _ in range(refine if movable.any() else 0):
+        misfit = (rec.markers[frame, seen] - embedding.apply(x)[seen]) / wmax[:, None]
+        corr = np.zeros((len(uniq), 3))
+        np.add.at(corr, inv, misfit)
+        corr /= np.bincount(inv, minlength=len(uniq))[:, None]
+        x[idx[rows[movable]]] += corr[movable]
+        integ.set_state(x, np.zeros((n, 3)))
+        integ.static_solve(zero_f, load_steps=1)
+        x = np.array(integ.x)
     integ.set_prescribed(np.zeros(0, np.int64))
     return x
 
 
 def initial_state(scene, model, rec: Recording, embedding: Embedding | None = None,
-                  velocity: str = "zero") -> tuple[np.ndarray, np.ndarray]:
+                  velocity: str = "zero", refine: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """(x0, v0), each (n, 3), at rec.times[0]; see the module docstring. velocity: "zero" or
-    "estimate"."""
+    "estimate"; refine: misfit-correction passes of the held pose (0 = nearest vertices only)."""
     n = scene.mesh.num_vertices
     V = np.asarray(scene.mesh.vertices, float)
     if velocity not in ("zero", "estimate"):
@@ -130,10 +148,10 @@ def initial_state(scene, model, rec: Recording, embedding: Embedding | None = No
     integ = scene.integrator(model)
     if not rec.seen[0].any() and not rec.has_drive:
         raise ValueError("initial_state: no marker is seen in frame 0")
-    x0 = _held_pose(scene, model, rec, 0, emb, integ)
+    x0 = _held_pose(scene, model, rec, 0, emb, integ, refine)
     if velocity == "zero" or rec.num_frames < 2:
         return x0, np.zeros((n, 3))
-    x1 = _held_pose(scene, model, rec, 1, emb, integ)
+    x1 = _held_pose(scene, model, rec, 1, emb, integ, refine)
     return x0, (x1 - x0) / (rec.times[1] - rec.times[0])
 
 
