@@ -83,15 +83,16 @@ def run(args) -> int:
     correction = load_correction(args.model) if args.model else None
     model = correction if hasattr(correction, "forces") else scene.model(correction)
     bar = ProgressBar("simulate", enabled=not args.quiet)
+    points = _marker_points(scene, args)  # before simulating: bad marker input fails fast
     if args.replay is not None:
         paths = scene.recording_paths()
         if not 0 <= args.replay < len(paths):
             raise ValueError(f"--replay {args.replay}: the scene has {len(paths)} recordings")
         src = load_recording(paths[args.replay])
         sim_t, X, _ = replay.simulate_recording(scene, model, src, progress=bar)
-        times, points, at_rest = src.times, src.marker_rest, src.at_rest_initially
-        if args.markers or args.all_surface:
-            points = _marker_points(scene, args)
+        times, at_rest = src.times, src.at_rest_initially
+        if not (args.markers or args.all_surface):
+            points = src.marker_rest
     else:
         duration = args.duration
         if duration is None:
@@ -103,7 +104,6 @@ def run(args) -> int:
             times = np.arange(0.0, sim_t[-1] + 1e-9, 1.0 / args.frame_rate)
         else:
             times = sim_t
-        points = _marker_points(scene, args)
     bar.close()
     emb = embed_points(scene.mesh, points)
     markers = replay.interpolate_frames(sim_t, emb.apply(X), times)
