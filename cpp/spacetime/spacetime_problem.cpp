@@ -196,7 +196,8 @@ VecX SpaceTimeProblem::jvp(const VecX& p) const {
   VecX out = VecX::Zero(num_residuals());
   const int nb = frames_ - 2;
   const double ih2 = 1.0 / (h_ * h_);
-#pragma omp parallel for schedule(static)
+  const bool big = double(frames_) * r_ * r_ > 2e6;  // threads only pay off on large products
+#pragma omp parallel for schedule(static) if (big)
   for (int b = 0; b < nb; ++b) {
     const int i = b + 1;
     out.segment(size_t(b) * r_, r_) = A_[b] * p.segment(size_t(i + 1) * r_, r_) +
@@ -205,7 +206,7 @@ VecX SpaceTimeProblem::jvp(const VecX& p) const {
   }
   const int T = int(obs_.frame.size());
   const int off = num_physics_rows();
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if (big)
   for (int t = 0; t < T; ++t) {
     const int f0 = obs_.frame[t];
     const double a = obs_.weight[t];
@@ -225,7 +226,8 @@ VecX SpaceTimeProblem::vjp(const VecX& q) const {
   const int nb = frames_ - 2;
   const double ih2 = 1.0 / (h_ * h_);
   // Gather per unknown frame j: rows b = j-2 (A), b = j-1 (B), b = j (Mr/h^2).
-#pragma omp parallel for schedule(static)
+  const bool big = double(frames_) * r_ * r_ > 2e6;
+#pragma omp parallel for schedule(static) if (big)
   for (int j = 0; j < frames_; ++j) {
     VecX g = VecX::Zero(r_);
     if (j - 2 >= 0 && j - 2 < nb) g += A_[j - 2].transpose() * q.segment(size_t(j - 2) * r_, r_);
@@ -236,7 +238,7 @@ VecX SpaceTimeProblem::vjp(const VecX& q) const {
   const int T = int(obs_.frame.size());
   const int off = num_physics_rows();
   MatXr G(T, r_);
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if (big)
   for (int t = 0; t < T; ++t) {
     VecX qt = q.segment(off + size_t(t) * obs_rows_, obs_rows_);
     for (int k = 0; k < obs_rows_; ++k)
@@ -279,46 +281,90 @@ VecX SpaceTimeProblem::column_scale() const {
   return d;
 }
 
+Eigen::SparseMatrix<double> SpaceTimeProblem::assemble_jacobian() const {
+  // J as a sparse matrix of dense r x r blocks (for the direct solve / preconditioner only).
+  std::vector<Eigen::Triplet<double>> trip;
+  const int nb = frames_ - 2;
+  const double ih2 = 1.0 / (h_ * h_);
+  auto add_block = [&](int row0, int col0, const MatX& Bk) {
+    for (int a = 0; a < Bk.rows(); ++a)
+      for (int c = 0; c < Bk.cols(); ++c)
+        if (Bk(a, c) != 0.0) trip.emplace_back(row0 + a, col0 + c, Bk(a, c));
+  };
+  const MatX Mh = ih2 * Mr_;
+  for (int b = 0; b < nb; ++b) {
+    add_block(b * r_, (b + 2) * r_, A_[b]);
+    add_block(b * r_, (b + 1) * r_, B_[b]);
+    add_block(b * r_, b * r_, Mh);
+  }
+  const int off = num_physics_rows();
+  for (int t = 0; t < int(obs_.frame.size()); ++t) {
+    const int f0 = obs_.frame[t];
+    const double a = obs_.weight[t];
+    MatX S = lambda_ * obs_.S_phi;
+    for (int k = 0; k < obs_rows_; ++k)
+      if (std::isnan(obs_.targets(t, k))) S.row(k).setZero();
+    add_block(off + t * obs_rows_, f0 * r_, (1 - a) * S);
+    if (a > 0) add_block(off + t * obs_rows_, (f0 + 1) * r_, a * S);
+  }
+  Eigen::SparseMatrix<double> J(num_residuals(), num_unknowns());
+  J.setFromTriplets(trip.begin(), trip.end());
+  return J;
+}
+
+void SpaceTimeProblem::factorize_normal(const Eigen::SparseMatrix<double>& J) const {
+  Eigen::SparseMatrix<double> JtJ = J.transpose() * J;
+  const double reg = 1e-14 * JtJ.diagonal().maxCoeff();
+  for (int i = 0; i < JtJ.rows(); ++i) JtJ.coeffRef(i, i) += reg;
+  precond_ = std::make_shared<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>>(JtJ);
+  if (precond_->info() != Eigen::Success) {
+    precond_.reset();
+    throw NumericalError("space-time: factorisation of J^T J failed");
+  }
+}
+
 VecX SpaceTimeProblem::solve_linear(const SolveOptions& opt, int* iterations) const {
   if (!linearized_) throw InvalidInput("solve_linear: call linearize(Z) first");
   if (opt.solver == "direct") {
-    // Assemble J as a sparse matrix of dense r x r blocks and factorise J^T J (block-banded).
-    std::vector<Eigen::Triplet<double>> trip;
-    const int nb = frames_ - 2;
-    const double ih2 = 1.0 / (h_ * h_);
-    auto add_block = [&](int row0, int col0, const MatX& Bk) {
-      for (int a = 0; a < Bk.rows(); ++a)
-        for (int c = 0; c < Bk.cols(); ++c)
-          if (Bk(a, c) != 0.0) trip.emplace_back(row0 + a, col0 + c, Bk(a, c));
-    };
-    const MatX Mh = ih2 * Mr_;
-    for (int b = 0; b < nb; ++b) {
-      add_block(b * r_, (b + 2) * r_, A_[b]);
-      add_block(b * r_, (b + 1) * r_, B_[b]);
-      add_block(b * r_, b * r_, Mh);
-    }
-    const int off = num_physics_rows();
-    for (int t = 0; t < int(obs_.frame.size()); ++t) {
-      const int f0 = obs_.frame[t];
-      const double a = obs_.weight[t];
-      MatX S = lambda_ * obs_.S_phi;
-      for (int k = 0; k < obs_rows_; ++k)
-        if (std::isnan(obs_.targets(t, k))) S.row(k).setZero();
-      add_block(off + t * obs_rows_, f0 * r_, (1 - a) * S);
-      if (a > 0) add_block(off + t * obs_rows_, (f0 + 1) * r_, a * S);
-    }
-    Eigen::SparseMatrix<double> J(num_residuals(), num_unknowns());
-    J.setFromTriplets(trip.begin(), trip.end());
-    Eigen::SparseMatrix<double> JtJ = J.transpose() * J;
-    const double reg = 1e-14 * JtJ.diagonal().maxCoeff();
-    for (int i = 0; i < JtJ.rows(); ++i) JtJ.coeffRef(i, i) += reg;
-    Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt(JtJ);
-    if (ldlt.info() != Eigen::Success)
-      throw NumericalError("space-time direct solve: factorisation of J^T J failed");
+    const Eigen::SparseMatrix<double> J = assemble_jacobian();
+    factorize_normal(J);
     if (iterations) *iterations = 0;
-    return ldlt.solve(-(J.transpose() * C_));
+    const VecX dz = precond_->solve(-(J.transpose() * C_));
+    precond_.reset();
+    return dz;
   }
-  if (opt.solver != "cgls") throw InvalidInput("solver must be 'cgls' or 'direct'");
+  if (opt.solver == "pcgls") {
+    // CG on the normal equations J^T J dz = -J^T C, products matrix-free, preconditioned by a
+    // frozen factorisation of an earlier J^T J (exact at the first step of a solve).
+    if (!precond_) factorize_normal(assemble_jacobian());
+    VecX x = VecX::Zero(num_unknowns());
+    VecX r = -vjp(C_);
+    const double r0 = r.norm();
+    VecX z = precond_->solve(r);
+    VecX p = z;
+    double rz = r.dot(z);
+    int k = 0;
+    for (; k < opt.cg_iterations && r0 > 0; ++k) {
+      const VecX Jp = jvp(p);
+      const double pAp = Jp.squaredNorm();
+      if (!(pAp > 0)) break;
+      const double alpha = rz / pAp;
+      x += alpha * p;
+      r -= alpha * vjp(Jp);
+      if (r.norm() <= opt.cg_tolerance * r0) {
+        ++k;
+        break;
+      }
+      z = precond_->solve(r);
+      const double rz_new = r.dot(z);
+      p = z + (rz_new / rz) * p;
+      rz = rz_new;
+    }
+    if (k > opt.refresh_iterations) precond_.reset();  // stale: refactorise at the next step
+    if (iterations) *iterations = k;
+    return x;
+  }
+  if (opt.solver != "cgls") throw InvalidInput("solver must be 'pcgls', 'cgls' or 'direct'");
   // CGLS on min |J D y + C| with Jacobi column scaling D, dz = D y.
   const VecX D = column_scale();
   VecX y = VecX::Zero(num_unknowns());
@@ -353,6 +399,7 @@ SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const Pro
     throw InvalidInput("Z: expected shape (" + std::to_string(frames_) + ", " +
                        std::to_string(r_) + ")");
   SolveReport rep;
+  precond_.reset();
   const int np = num_physics_rows();
   auto record = [&](const VecX& C) {
     rep.cost.push_back(0.5 * C.squaredNorm());
@@ -393,6 +440,7 @@ SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const Pro
     if (cost - 0.5 * Ct.squaredNorm() < opt.tolerance * cost) break;
   }
   linearized_ = false;  // Z moved past the last linearisation
+  precond_.reset();
   return rep;
 }
 

@@ -5,6 +5,8 @@
 #include <vector>
 
 #include "common/types.hpp"
+#include <Eigen/SparseCholesky>
+
 #include "fem/model.hpp"
 
 namespace matlearn::spacetime {
@@ -30,7 +32,12 @@ struct SolveOptions {
   int cg_iterations = 300;     ///< CGLS iterations per step
   double cg_tolerance = 1e-6;  ///< CGLS stops when |J^T r| <= tol |J^T r_0|
   double tolerance = 1e-5;     ///< stop when the cost decreases by less than this fraction
-  std::string solver = "cgls"; ///< "cgls" (matrix-free) or "direct" (sparse normal equations)
+  /// "pcgls": matrix-free CGLS (on J p, J^T q) preconditioned by a factorisation of J^T J frozen
+  /// at the first Gauss-Newton step of a solve (refreshed when CG needs > refresh_iterations);
+  /// "cgls": matrix-free CGLS with Jacobi column scaling only;
+  /// "direct": factorise the block-banded normal equations J^T J at every step.
+  std::string solver = "pcgls";
+  int refresh_iterations = 30;
 };
 
 /// Called after each Gauss-Newton step with (step, max steps); may throw to cancel.
@@ -88,6 +95,8 @@ class SpaceTimeProblem {
   void frame_state(const MatXr& Z, int j, MatX3& x, MatX3& v) const;
   VecX physics_block(const MatXr& Z, int i, const VecX& f_next) const;
   VecX column_scale() const;
+  Eigen::SparseMatrix<double> assemble_jacobian() const;
+  void factorize_normal(const Eigen::SparseMatrix<double>& J) const;
 
   std::shared_ptr<const fem::Model> model_, nominal_;
   MatX phi_;          // 3n x r
@@ -101,6 +110,7 @@ class SpaceTimeProblem {
   std::vector<MatX> A_, B_;
   VecX C_;
   bool linearized_ = false;
+  mutable std::shared_ptr<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>> precond_;
 };
 
 }  // namespace matlearn::spacetime

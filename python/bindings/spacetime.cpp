@@ -136,7 +136,7 @@ void define_spacetime(py::module_& m) {
              }
              return py::make_tuple(dz, it);
            },
-           py::arg("solver") = "cgls", py::arg("cg_iterations") = 300,
+           py::arg("solver") = "pcgls", py::arg("cg_iterations") = 300,
            py::arg("cg_tolerance") = 1e-6,
            "One Gauss-Newton step: argmin |J dz + C| at the last linearisation; (dz, iterations).")
       .def("solve",
@@ -168,7 +168,7 @@ void define_spacetime(py::module_& m) {
              return d;
            },
            py::arg("Z0"), py::arg("max_iterations") = 10, py::arg("cg_iterations") = 300,
-           py::arg("cg_tolerance") = 1e-6, py::arg("tolerance") = 1e-5, py::arg("solver") = "cgls",
+           py::arg("cg_tolerance") = 1e-6, py::arg("tolerance") = 1e-5, py::arg("solver") = "pcgls",
            py::arg("progress") = py::none(),
            "Gauss-Newton from Z0; returns dict(Z, cost, physics_cost, cg_iterations, step_length).")
       .def("control_forces",

@@ -1,0 +1,200 @@
+"""From control forces to a material correction (method.md section 6).
+
+The correction is an RBF model over principal stretches Fh (RbfCorrection in C++):
+
+    dPh(Fh)    = A (Fh - 1) + b + sum_k w_k phi_k(Fh),   phi_k(Fh) = sqrt(|Fh - c_k|^2 + eps^2)
+    dalpha(Fh) = a0 + sum_k wa_k phi_k(Fh)                 (change of the stiffness-damping alpha_K)
+
+Centres c_k come from k-means over the principal stretches of all elements and frames. The bias
+is tied to the weights, b = -sum_k w_k phi_k(1), so the rest shape stays stress-free (the truth
+and the nominal law are both stress-free at rest). Damping is passive by construction: the C++
+model clamps alpha_K + dalpha at 0 per element.
+
+Fit. Over frames j (positions x_j, velocities v_j, control forces fc_j) the new total correction
+must produce the current correction's force plus the control force:
+
+    B_j dPh_new(Fh_j) + G_j dalpha_new(Fh_j) = fc_j + f_corr,current(x_j, v_j)
+
+with B_j the force map and G_j the stiffness-damping map (column e = -K_e v_e). Both sides are
+projected on the space-time basis (Phi^T ...): the space-time solve determines only the reduced
+forces; the component of fc orthogonal to span(M Phi) is the elastic response to the basis
+truncation, not a material error, and fitting it would learn the truncation. The problem is
+linear in (w, A, wa, a0): one ridge-regularised least-squares solve over all frames (normal
+equations accumulated frame by frame from C++-built sparse maps).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import _core
+
+
+@dataclass
+class RbfParams:
+    """Parameters of an RbfCorrection (see module docstring); shapes (c,3), (c,3), (3,3), (3,),
+    (c,) or (0,), scalar, scalar."""
+
+    centers: np.ndarray
+    weights: np.ndarray
+    linear: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    alpha_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    alpha_bias: float = 0.0
+    epsilon: float = 0.05
+
+    def correction(self):
+        return _core.correction.RbfCorrection(
+            np.ascontiguousarray(self.centers, float), np.ascontiguousarray(self.weights, float),
+            np.asarray(self.linear, float), np.asarray(self.bias, float),
+            np.asarray(self.alpha_weights, float), float(self.alpha_bias), float(self.epsilon))
+
+    def to_arrays(self, prefix: str = "rbf_") -> dict:
+        return {prefix + k: np.asarray(getattr(self, k), float) for k in
+                ("centers", "weights", "linear", "bias", "alpha_weights", "alpha_bias", "epsilon")}
+
+    @classmethod
+    def from_arrays(cls, d, prefix: str = "rbf_") -> "RbfParams":
+        return cls(**{k: np.asarray(d[prefix + k], float) for k in
+                      ("centers", "weights", "linear", "bias", "alpha_weights")},
+                   alpha_bias=float(np.asarray(d[prefix + "alpha_bias"])),
+                   epsilon=float(np.asarray(d[prefix + "epsilon"])))
+
+
+def rbf_kernel(Fh: np.ndarray, centers: np.ndarray, eps: float) -> np.ndarray:
+    """phi_k(Fh) = sqrt(|Fh - c_k|^2 + eps^2), (m, c)."""
+    d2 = ((np.asarray(Fh)[:, None, :] - centers[None]) ** 2).sum(-1)
+    return np.sqrt(d2 + eps * eps)
+
+
+def choose_centers(Fh_samples: np.ndarray, num_centers: int, seed: int = 0,
+                   max_samples: int = 20000) -> tuple[np.ndarray, float]:
+    """k-means centres (c, 3) over principal-stretch samples (k, 3) and the kernel width eps
+    (the median distance from a centre to its nearest other centre, at least 1e-3)."""
+    from sklearn.cluster import KMeans
+
+    S = np.asarray(Fh_samples, float)
+    if S.ndim != 2 or S.shape[1] != 3 or len(S) == 0:
+        raise ValueError(f"Fh_samples: expected shape (k, 3) with k > 0, got {S.shape}")
+    rng = np.random.default_rng(seed)
+    if len(S) > max_samples:
+        S = S[rng.choice(len(S), max_samples, replace=False)]
+    c = int(min(num_centers, len(np.unique(np.round(S, 9), axis=0))))
+    km = KMeans(n_clusters=c, n_init=4, random_state=seed).fit(S)
+    C = km.cluster_centers_
+    if c > 1:
+        d = np.sqrt(((C[:, None] - C[None]) ** 2).sum(-1))
+        np.fill_diagonal(d, np.inf)
+        eps = float(max(np.median(d.min(axis=1)), 1e-3))
+    else:
+        eps = float(max(S.std(), 1e-3))
+    return C, eps
+
+
+@dataclass
+class FitFrames:
+    """Frames to fit from: positions X (F, n, 3), velocities V (F, n, 3), control forces
+    fc (F, n, 3) and the basis phi (3n, r) the forces are projected on (None: full space, with
+    the rows of `constrained` vertices dropped)."""
+
+    X: np.ndarray
+    V: np.ndarray
+    fc: np.ndarray
+    phi: np.ndarray | None = None
+    constrained: np.ndarray | None = None
+
+
+def _features(Fh, centers, eps, rest_phi):
+    P = rbf_kernel(Fh, centers, eps)
+    return np.concatenate([P - rest_phi[None], Fh - 1.0], axis=1), P
+
+
+def correction_force(model_corr, model_nom, x, v) -> np.ndarray:
+    """Force (3n) the current correction adds at (x, v) (elastic + damping)."""
+    return (np.asarray(model_corr.forces(x, v)) - np.asarray(model_nom.forces(x, v))).ravel()
+
+
+def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_model=None,
+                   damping: bool = True, ridge: float = 1e-6, seed: int = 0, stride: int = 1,
+                   centers=None) -> tuple[RbfParams, dict]:
+    """Least-squares RBF correction from control forces (module docstring).
+
+    nominal_model: the model without correction; frames: list of FitFrames; current_model: the
+    same model with the current correction (or None); damping: also fit the strain-dependent alpha_K change;
+    ridge: Tikhonov weight relative to the mean diagonal of the (column-normalised) normal
+    matrix; stride: use every stride-th frame; centers: (C, eps) to reuse instead of k-means.
+    Returns (params, info) with info = dict(residual_ratio, frames, parameters)."""
+    if not frames:
+        raise ValueError("fit_correction: no frames")
+    cur_model = current_model
+    # Centres over the stretches of all used frames.
+    samples = []
+    for fr in frames:
+        for j in range(0, len(fr.X), stride):
+            Fh = nominal_model.principal_kinematics(fr.X[j], fr.V[j])[0]
+            samples.append(np.asarray(Fh))
+    if centers is None:
+        C, eps = choose_centers(np.concatenate(samples), num_centers, seed)
+    else:
+        C, eps = centers
+    c = len(C)
+    rest_phi = rbf_kernel(np.ones((1, 3)), C, eps)[0]
+    ne = 3 * (c + 3)
+    na = (c + 1) if damping else 0
+    p = ne + na
+    N = np.zeros((p, p))
+    rhs = np.zeros(p)
+    yy = 0.0
+    count = 0
+    k = 0
+    for fr in frames:
+        n = fr.X.shape[1]
+        if fr.phi is not None:
+            P = np.asarray(fr.phi)
+        else:
+            keep = np.ones(3 * n, bool)
+            if fr.constrained is not None:
+                keep[(3 * np.asarray(fr.constrained)[:, None] + np.arange(3)).ravel()] = False
+            P = None
+        for j in range(0, len(fr.X), stride):
+            x, v = fr.X[j], fr.V[j]
+            Fh = samples[k]
+            k += 1
+            feat, Pk = _features(Fh, C, eps, rest_phi)
+            B = nominal_model.force_map(x)
+            y = np.asarray(fr.fc[j], float).ravel()
+            if cur_model is not None:
+                y = y + correction_force(cur_model, nominal_model, x, v)
+            cols = []
+            for comp in range(3):
+                Bk = B[:, comp::3]
+                cols.append((Bk.T @ P).T @ feat if P is not None else (Bk[keep] @ feat))
+            if damping:
+                G = nominal_model.stiffness_damping_map(x, v)
+                Q = np.concatenate([Pk, np.ones((len(Pk), 1))], axis=1)
+                cols.append((G.T @ P).T @ Q if P is not None else G[keep] @ Q)
+            D = np.concatenate(cols, axis=1)
+            yr = P.T @ y if P is not None else y[keep]
+            N += D.T @ D
+            rhs += D.T @ yr
+            yy += yr @ yr
+            count += 1
+    scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    Ns = N / scale[:, None] / scale[None]
+    reg = ridge * np.trace(Ns) / p
+    theta = np.linalg.solve(Ns + reg * np.eye(p), rhs / scale) / scale
+    res2 = max(yy - 2 * theta @ rhs + theta @ N @ theta, 0.0)
+    We = theta[:ne].reshape(3, c + 3)  # per stress component: [w (c), A row (3)]
+    W = We[:, :c].T.copy()
+    A = We[:, c:].copy()
+    bias = -(W.T @ rest_phi)
+    if damping:
+        wa, a0 = theta[ne:ne + c].copy(), float(theta[ne + c])
+    else:
+        wa, a0 = np.zeros(0), 0.0
+    params = RbfParams(C, W, A, bias, wa, a0, eps)
+    info = {"residual_ratio": float(np.sqrt(res2 / yy)) if yy > 0 else 0.0, "frames": count,
+            "parameters": p, "centers": c, "epsilon": eps}
+    return params, info
+

@@ -1,0 +1,113 @@
+"""Python side of the sparse reduced space-time optimisation (method.md section 5).
+
+`build_problem` turns a scene, a model, a recording and a basis into the C++
+`_core.spacetime.SpaceTimeProblem`: frames at the simulation step over the recording span, the
+marker embedding as a selection operator S (markers need not sit on vertices), samples at the
+recording times interpolated between their neighbouring frames (recordings need not be at the
+simulation rate), clamped and driven vertices in x_base. `solve_spacetime` runs Gauss-Newton
+(each step CGLS on J products computed in C++) and returns positions, velocities and the control
+forces ("gentle forces") of every frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .. import _core
+from ..embedding import embed_points
+from ..replay import drive_vertices, interpolate_frames, simulation_times
+
+
+@dataclass
+class SpaceTimeSetup:
+    """problem: the C++ problem; phi (3n, r); base (frames, n, 3) constrained-vertex positions
+    (rest elsewhere); times (frames,) simulation times; constrained: clamped + driven vertices."""
+
+    problem: object
+    phi: np.ndarray
+    base: np.ndarray
+    times: np.ndarray
+    constrained: np.ndarray
+
+    def project(self, X: np.ndarray) -> np.ndarray:
+        """Least-squares modal coordinates Z (frames, r) of positions X (frames, n, 3)."""
+        D = (np.asarray(X, float) - self.base).reshape(len(X), -1)
+        return D @ self.phi  # phi has orthonormal columns
+
+    def positions(self, Z) -> np.ndarray:
+        return self.problem.positions(np.ascontiguousarray(Z))
+
+
+def constrained_vertices(scene, rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(constrained (c,), driven (k,), drive targets at the simulation steps (frames, k, 3))."""
+    didx, dtargets = drive_vertices(scene, rec)
+    sim_t = simulation_times(scene, rec)
+    dsteps = interpolate_frames(rec.times, dtargets, sim_t) if len(didx) else np.zeros((len(sim_t), 0, 3))
+    constrained = np.union1d(np.asarray(scene.fixed, np.int64), didx).astype(np.int64)
+    return constrained, didx, dsteps
+
+
+def observation_weight(model, time_step: float, lam: float) -> float:
+    """The C++ weight of the observation rows for the user's dimensionless `lam`:
+    lam * (mean vertex mass) / h^2 (N/m). With lam = 1 a marker error of 1 m weighs like the
+    inertial force of an average vertex displaced by 1 m within one step, which keeps the
+    balance between physics and observations independent of the object's size, density, mesh
+    resolution and time step (lam from ~0.01 to ~1e5 converge; see tests/bench)."""
+    if not lam > 0:
+        raise ValueError(f"lambda must be > 0, got {lam}")
+    return float(lam * np.mean(np.asarray(model.vertex_mass)) / time_step**2)
+
+
+def build_problem(scene, model, rec, phi, lam: float, embedding=None,
+                  nominal_tangent: bool = True) -> SpaceTimeSetup:
+    """Space-time problem for one recording. phi (3n, r) must be zero on constrained rows;
+    lam is dimensionless (:func:`observation_weight`)."""
+    mesh = scene.mesh
+    n = mesh.num_vertices
+    V = np.asarray(mesh.vertices, float)
+    constrained, didx, dsteps = constrained_vertices(scene, rec)
+    phi = np.asarray(phi, float)
+    if phi.shape[0] != 3 * n:
+        raise ValueError(f"phi: expected shape (3*{n}, r), got {phi.shape}")
+    sim_t = simulation_times(scene, rec)
+    frames = len(sim_t)
+    base = np.repeat(V[None], frames, axis=0)
+    if len(didx):
+        base[:, didx] = dsteps
+    mass = np.asarray(model.vertex_mass)
+    fext = mass[:, None] * np.asarray(scene.gravity)[None, :]
+    # Observations: markers through their embedding, samples interpolated between frames.
+    emb = embedding if embedding is not None else embed_points(mesh, rec.marker_rest)
+    K = emb.num_points
+    E = emb.matrix(n)
+    S = sp.kron(E, sp.eye(3), format="csr")  # (3K, 3n)
+    S_phi = np.ascontiguousarray(S @ phi)
+    S_base = np.ascontiguousarray((S @ base.reshape(frames, -1).T).T)
+    h = scene.time_step
+    inside = (rec.times >= sim_t[0] - 1e-12) & (rec.times <= sim_t[-1] + 1e-12)
+    t = rec.times[inside]
+    frame = np.clip(np.floor((t - sim_t[0]) / h + 1e-9).astype(np.int64), 0, frames - 2)
+    weight = np.clip((t - sim_t[frame]) / h, 0.0, 1.0)
+    targets = np.ascontiguousarray(rec.markers[inside].reshape(len(t), 3 * K))
+    prob = _core.spacetime.SpaceTimeProblem(
+        model, phi, base, fext, h, S_phi, S_base, frame, weight, targets, observation_weight(model, h, lam), nominal_tangent
+    )
+    return SpaceTimeSetup(prob, phi, base, sim_t, constrained)
+
+
+def solve_spacetime(setup: SpaceTimeSetup, X0, iterations: int = 8, cg_iterations: int = 400,
+                    cg_tolerance: float = 1e-8, tolerance: float = 2e-3, solver: str = "pcgls",
+                    progress=None) -> dict:
+    """Gauss-Newton from the trajectory X0 (frames, n, 3). Returns dict(Z, X (frames, n, 3),
+    V (frames, n, 3), control_forces (frames-2, n, 3) for frames 2..N, report)."""
+    Z0 = np.ascontiguousarray(setup.project(X0))
+    rep = setup.problem.solve(Z0, iterations, cg_iterations, cg_tolerance, tolerance, solver, progress)
+    Z = rep.pop("Z")
+    X = setup.problem.positions(Z)
+    h = setup.times[1] - setup.times[0]
+    Vel = np.zeros_like(X)
+    Vel[1:] = (X[1:] - X[:-1]) / h
+    fc = setup.problem.control_forces(Z)
+    return {"Z": Z, "X": X, "V": Vel, "control_forces": fc, "report": rep}
