@@ -136,26 +136,27 @@ Mat3 principal_stress_derivative(MaterialModel m, const Vec3& s, double mu, doub
   return Mat3::Zero();
 }
 
-Eigen::Matrix<double, 9, 9> stress_derivative_from_principal(const Mat3& U, const Vec3& s,
-                                                             const Mat3& V, const Vec3& Ph,
-                                                             const Mat3& dPh_in, bool project_psd) {
-  using Mat9 = Eigen::Matrix<double, 9, 9>;
+PrincipalTangent principal_tangent(const Vec3& s, const Vec3& Ph, const Mat3& dPh_in,
+                                   bool project_psd) {
+  PrincipalTangent T;
   // Unprojected: keep dPh as given (a learned correction need not have a symmetric Jacobian, and
   // the exact tangent is then non-symmetric). Projected: symmetrise, then clamp eigenvalues.
-  Mat3 dPh = dPh_in;
+  T.diag = dPh_in;
   if (project_psd) {
-    dPh = 0.5 * (dPh_in + dPh_in.transpose());
-    Eigen::SelfAdjointEigenSolver<Mat3> es(dPh);
-    dPh = es.eigenvectors() * es.eigenvalues().cwiseMax(0.0).asDiagonal() *
-          es.eigenvectors().transpose();
+    const Mat3 sym = 0.5 * (dPh_in + dPh_in.transpose());
+    // Positive definite (leading minors > 0, the common case): nothing to clamp.
+    const double m1 = sym(0, 0), m2 = sym(0, 0) * sym(1, 1) - sym(0, 1) * sym(0, 1);
+    if (m1 > 0 && m2 > 0 && sym.determinant() > 0) {
+      T.diag = sym;
+    } else {
+      Eigen::SelfAdjointEigenSolver<Mat3> es(sym);
+      T.diag = es.eigenvectors() * es.eigenvalues().cwiseMax(0.0).asDiagonal() *
+               es.eigenvectors().transpose();
+    }
   }
-  // Principal-frame tangent: hat(dP) = Hh hat(dF), hat(.) = U^T (.) V, vec index i + 3j.
-  Mat9 Hh = Mat9::Zero();
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) Hh(i + 3 * i, j + 3 * j) = dPh(i, j);
   static const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
-  for (const auto& p : pairs) {
-    const int i = p[0], j = p[1];
+  for (int p = 0; p < 3; ++p) {
+    const int i = pairs[p][0], j = pairs[p][1];
     const double ds = s[i] - s[j];
     // (Ph_i - Ph_j)/(s_i - s_j) -> dPh_ii - dPh_ij as s_i -> s_j (isotropy).
     const double A = std::abs(ds) > 1e-6 ? (Ph[i] - Ph[j]) / ds
@@ -171,17 +172,26 @@ Eigen::Matrix<double, 9, 9> stress_derivative_from_principal(const Mat3& U, cons
       a = 0.5 * (l1 + l2);
       b = 0.5 * (l1 - l2);
     }
-    const int ij = i + 3 * j, ji = j + 3 * i;
-    Hh(ij, ij) = a;
-    Hh(ji, ji) = a;
-    Hh(ij, ji) = b;
-    Hh(ji, ij) = b;
+    T.a[p] = a;
+    T.b[p] = b;
   }
-  // vec(U A V^T) = (V kron U) vec(A).
-  Mat9 Q;
-  for (int bj = 0; bj < 3; ++bj)
-    for (int bi = 0; bi < 3; ++bi) Q.block<3, 3>(3 * bi, 3 * bj) = V(bi, bj) * U;
-  return Q * Hh * Q.transpose();
+  return T;
+}
+
+Eigen::Matrix<double, 9, 9> stress_derivative_from_principal(const Mat3& U, const Vec3& s,
+                                                             const Mat3& V, const Vec3& Ph,
+                                                             const Mat3& dPh, bool project_psd) {
+  using Mat9 = Eigen::Matrix<double, 9, 9>;
+  const PrincipalTangent T = principal_tangent(s, Ph, dPh, project_psd);
+  // Column k of dP/dF is vec(U Hh(U^T E_k V) V^T) for the unit matrix E_k = unvec(e_k).
+  Mat9 out;
+  for (int k = 0; k < 9; ++k) {
+    const int r = k % 3, c = k / 3;
+    const Mat3 X = U.row(r).transpose() * V.row(c);  // U^T E_k V
+    const Mat3 Y = U * T.apply(X) * V.transpose();
+    out.col(k) = Eigen::Map<const Eigen::Matrix<double, 9, 1>>(Y.data());
+  }
+  return out;
 }
 
 }  // namespace matlearn::fem

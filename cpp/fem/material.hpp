@@ -32,6 +32,38 @@ Vec3 principal_stress(MaterialModel m, const Vec3& s, double mu, double lambda,
 Mat3 principal_stress_derivative(MaterialModel m, const Vec3& s, double mu, double lambda,
                                  const std::vector<StretchEdit>& edits = {});
 
+/// The tangent of an isotropic law in the principal frame: with hat(X) = U^T X V,
+/// hat(dP) = Hh hat(dF), where Hh couples the diagonal of hat(dF) through `diag` (3 x 3, the
+/// principal tangent dPh/ds) and each off-diagonal pair (hat_ij, hat_ji), (i,j) in
+/// {(0,1), (0,2), (1,2)}, through the symmetric 2 x 2 block [[a b] [b a]]. Hh has 21 non-zeros
+/// of 81, which is what makes element tangents cheap (see apply()).
+struct PrincipalTangent {
+  Mat3 diag;
+  Vec3 a, b;
+  /// hat(dP) for hat(dF) = X.
+  Mat3 apply(const Mat3& X) const {
+    Mat3 Y;
+    const Vec3 d = diag * X.diagonal();
+    Y(0, 0) = d[0];
+    Y(1, 1) = d[1];
+    Y(2, 2) = d[2];
+    Y(0, 1) = a[0] * X(0, 1) + b[0] * X(1, 0);
+    Y(1, 0) = b[0] * X(0, 1) + a[0] * X(1, 0);
+    Y(0, 2) = a[1] * X(0, 2) + b[1] * X(2, 0);
+    Y(2, 0) = b[1] * X(0, 2) + a[1] * X(2, 0);
+    Y(1, 2) = a[2] * X(1, 2) + b[2] * X(2, 1);
+    Y(2, 1) = b[2] * X(1, 2) + a[2] * X(2, 1);
+    return Y;
+  }
+};
+
+/// Principal-frame tangent from principal stretches s, stresses Ph and dPh/ds, following Teran
+/// et al. 2005 / Xu et al. 2015 with the repeated-stretch limits. Unprojected, dPh is used as
+/// given (a learned correction need not have a symmetric Jacobian); if `project_psd`, dPh is
+/// symmetrised and every block clamped to be PSD, so the world tangent is PSD.
+PrincipalTangent principal_tangent(const Vec3& s, const Vec3& Ph, const Mat3& dPh,
+                                   bool project_psd);
+
 /// dP/dF (9 x 9, acting on column-major vec(F)) of an isotropic law from its principal data,
 /// following Teran et al. 2005 / Xu et al. 2015 with the repeated-stretch limits.
 /// `dPh` is dPh/ds (3x3); if `project_psd`, each principal block is clamped to be PSD.

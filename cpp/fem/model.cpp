@@ -68,6 +68,57 @@ Mat9x12 Model::shape_gradient(int e) const {
   return G;
 }
 
+namespace {
+
+using Vec9 = Eigen::Matrix<double, 9, 1>;
+
+/// Principal-frame shape columns of a tet: column 3a + k (vertex a+1 of the tet, coordinate k)
+/// is vec(U^T dF V) for a unit displacement of that DOF, i.e. the outer product
+/// U.row(k)^T (Bm V).row(a). Vertex 0 is minus the sum of the others (translation invariance).
+Mat9 principal_shape_columns(const Mat3& U, const Mat3& BmV) {
+  Mat9 A;
+  for (int a = 0; a < 3; ++a)
+    for (int k = 0; k < 3; ++k) {
+      Eigen::Map<Mat3> X(A.col(3 * a + k).data());
+      X.noalias() = U.row(k).transpose() * BmV.row(a);
+    }
+  return A;
+}
+
+/// W A^T Hh A for the 9 DOFs of vertices 1..3, expanded to the 12 x 12 element matrix by
+/// translation invariance. Equal to W G^T (dP/dF) G with dP/dF = (V kron U) Hh (V kron U)^T,
+/// at a fraction of the cost (Hh has 21 non-zeros).
+void element_matrix(const Mat9& A, const PrincipalTangent& T, double W, Mat12& out) {
+  Mat9 HA;
+  for (int c = 0; c < 9; ++c) {
+    const Mat3 Y = T.apply(Eigen::Map<const Mat3>(A.col(c).data()));
+    HA.col(c) = Eigen::Map<const Vec9>(Y.data());
+  }
+  Mat9 K9;
+  K9.noalias() = W * A.transpose().lazyProduct(HA);
+  out.bottomRightCorner<9, 9>() = K9;
+  for (int c = 0; c < 9; ++c) {
+    out(0, 3 + c) = -(K9(0, c) + K9(3, c) + K9(6, c));
+    out(1, 3 + c) = -(K9(1, c) + K9(4, c) + K9(7, c));
+    out(2, 3 + c) = -(K9(2, c) + K9(5, c) + K9(8, c));
+  }
+  for (int r = 0; r < 12; ++r)
+    for (int l = 0; l < 3; ++l) out(r, l) = -(out(r, 3 + l) + out(r, 6 + l) + out(r, 9 + l));
+}
+
+/// Vertex forces -W P Bm^T of a tet (12), vertex 0 first, for the world stress P.
+Vec12 element_forces(const Mat3& P, const Mat3& Bm, double W) {
+  const Mat3 H = -W * P * Bm.transpose();  // column a: force on vertex a+1
+  Vec12 f;
+  f.segment<3>(3) = H.col(0);
+  f.segment<3>(6) = H.col(1);
+  f.segment<3>(9) = H.col(2);
+  f.segment<3>(0) = -(H.col(0) + H.col(1) + H.col(2));
+  return f;
+}
+
+}  // namespace
+
 void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd,
                      ElementState& st) const {
   check_state(x, "x");
@@ -78,15 +129,15 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   st.V.resize(m);
   st.Fh.resize(m, 3);
   st.Fhdot.resize(m, 3);
-  std::vector<Mat3> Fdot(m);
+  st.Fdot.resize(m);
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < m; ++e) {
     const Mat3 F = mesh_->deformation_gradient(x, e);
-    Fdot[e] = mesh_->deformation_gradient(v, e);
+    st.Fdot[e] = mesh_->deformation_gradient(v, e);
     Vec3 s;
     rotation_variant_svd(F, st.U[e], s, st.V[e]);
     st.Fh.row(e) = s.transpose();
-    st.Fhdot.row(e) = (st.U[e].transpose() * Fdot[e] * st.V[e]).diagonal().transpose();
+    st.Fhdot.row(e) = (st.U[e].transpose() * st.Fdot[e] * st.V[e]).diagonal().transpose();
   }
   correction::CorrectionOutput corr;
   const bool has_corr = correction_ != nullptr;
@@ -102,10 +153,12 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   if (flags & kStiffness) st.K.resize(m);
   if (flags & kDamping) st.D.resize(m);
   if (flags & kNominalKv) st.Kv.resize(m);
+  const bool need_nominal = flags & (kForce | kDamping | kNominalKv);
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < m; ++e) {
     const Vec3 s = st.Fh.row(e).transpose();
     const double W = mesh_->volumes()[e];
+    const Mat3& Bm = mesh_->Bm()[e];
     const Vec3 Pn = principal_stress(material_, s, mu_[e], lambda_[e], edits_);
     const Mat3 dPn = principal_stress_derivative(material_, s, mu_[e], lambda_[e], edits_);
     Vec3 Ph = Pn;
@@ -117,49 +170,56 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
     st.Ph.row(e) = Ph.transpose();
     st.alpha_K[e] = aK;
     st.alpha_M[e] = damping_alpha(damping_.alpha_mass, damping_.mass_poly, s[0]);
-    const Mat9x12 G = shape_gradient(e);
     const Mat3& U = st.U[e];
     const Mat3& V = st.V[e];
-    const Eigen::Map<const Eigen::Matrix<double, 9, 1>> fdot(Fdot[e].data());
+    const double cm = st.alpha_M[e] * density_[e] * W / 4.0;  // lumped mass damping per corner
     // Nominal tangent (always projected: Rayleigh damping built on it must stay passive).
-    const Mat9 dPdF_nom = stress_derivative_from_principal(U, s, V, Pn, dPn, true);
-    const Eigen::Matrix<double, 9, 1> Pd = dPdF_nom * fdot;  // damping stress per unit alpha_K
+    PrincipalTangent Tnom;
+    Mat3 Pd_hat = Mat3::Zero();  // damping stress per unit alpha_K, principal frame
+    if (need_nominal || (project_psd && !has_corr)) {
+      Tnom = principal_tangent(s, Pn, dPn, true);
+      Pd_hat = Tnom.apply(U.transpose() * st.Fdot[e] * V);
+    }
     if (flags & kForce) {
-      const Mat3 P = U * Ph.asDiagonal() * V.transpose();
-      const Eigen::Map<const Eigen::Matrix<double, 9, 1>> vecP(P.data());
-      Vec12 xe_v;
-      for (int a = 0; a < 4; ++a) xe_v.segment<3>(3 * a) = v.row(T(e, a)).transpose();
-      Vec12 f = -W * G.transpose() * (vecP + aK * Pd);
-      // Mass damping: lumped element mass rho W / 4 per corner.
-      f -= st.alpha_M[e] * density_[e] * W / 4.0 * xe_v;
+      Mat3 Phat = aK * Pd_hat;
+      Phat.diagonal() += Ph;
+      Vec12 f = element_forces(U * Phat * V.transpose(), Bm, W);
+      for (int a = 0; a < 4; ++a) f.segment<3>(3 * a) -= cm * v.row(T(e, a)).transpose();
       st.f[e] = f;
     }
-    if (flags & kNominalKv) st.Kv[e] = W * G.transpose() * Pd;
+    if (flags & kNominalKv) st.Kv[e] = -element_forces(U * Pd_hat * V.transpose(), Bm, W);
+    if (!(flags & (kStiffness | kDamping))) continue;
+    const Mat9 A = principal_shape_columns(U, Bm * V);
     if (flags & kStiffness) {
-      Mat9 dPdF;
-      if (!has_corr)
-        dPdF = project_psd ? dPdF_nom : stress_derivative_from_principal(U, s, V, Pn, dPn, false);
+      if (!has_corr && project_psd)
+        element_matrix(A, Tnom, W, st.K[e]);
+      else if (!has_corr)
+        element_matrix(A, principal_tangent(s, Pn, dPn, false), W, st.K[e]);
       else
-        dPdF = stress_derivative_from_principal(U, s, V, Ph, dPn + corr.d_dFh[e], project_psd);
-      st.K[e] = W * G.transpose() * dPdF * G;
+        element_matrix(A, principal_tangent(s, Ph, dPn + corr.d_dFh[e], project_psd), W, st.K[e]);
     }
     if (flags & kDamping) {
-      Mat9 Dp = aK * dPdF_nom;
-      const bool rate_corr = has_corr && !corr.d_dFhdot[e].isZero();
       if ((flags & kStiffness) && !has_corr && project_psd) {
-        // Same projected nominal tangent as K: reuse it instead of a second 12x12 product.
+        // Same projected nominal tangent as K: reuse it instead of a second element product.
         Mat12 De = aK * st.K[e];
-        De.diagonal().array() += st.alpha_M[e] * density_[e] * W / 4.0;
+        De.diagonal().array() += cm;
         st.D[e] = De;
         continue;
       }
-      if (rate_corr) {
+      PrincipalTangent Td = Tnom;
+      Td.diag *= aK;
+      Td.a *= aK;
+      Td.b *= aK;
+      if (has_corr && !corr.d_dFhdot[e].isZero()) {
         // Rate-dependent correction: only its principal-diagonal block enters the tangent.
-        Mat3 J = 0.5 * (corr.d_dFhdot[e] + corr.d_dFhdot[e].transpose());
-        Dp += stress_derivative_from_principal(U, s, V, Vec3::Zero(), J, project_psd);
+        const Mat3 J = 0.5 * (corr.d_dFhdot[e] + corr.d_dFhdot[e].transpose());
+        const PrincipalTangent Tr = principal_tangent(s, Vec3::Zero(), J, project_psd);
+        Td.diag += Tr.diag;
+        Td.a += Tr.a;
+        Td.b += Tr.b;
       }
-      Mat12 De = W * G.transpose() * Dp * G;
-      const double cm = st.alpha_M[e] * density_[e] * W / 4.0;
+      Mat12 De;
+      element_matrix(A, Td, W, De);
       De.diagonal().array() += cm;
       st.D[e] = De;
     }

@@ -22,6 +22,7 @@ struct DampingParams {
 /// Everything evaluated per element at one state (x, v).
 struct ElementState {
   std::vector<Mat3> U, V;
+  std::vector<Mat3> Fdot;  ///< velocity gradients
   MatX3 Fh, Fhdot;     ///< (#T x 3) principal stretches and stretch rates
   MatX3 Ph;            ///< (#T x 3) total principal stress (nominal + correction), Pa
   MatX3 dPh_corr;      ///< (#T x 3) correction part of Ph

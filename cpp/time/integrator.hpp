@@ -18,6 +18,16 @@ struct StepOptions {
   double tolerance = 1e-7;   ///< Newton stops when |dv| <= tolerance * (|v| + v_ref)
 };
 
+/// Wall-clock seconds spent in each phase of the last step, summed over its Newton iterations
+/// (for benchmarks and profiling).
+struct StepTimings {
+  double evaluate_s = 0;   ///< element evaluation (SVD, stresses, element matrices) + force gather
+  double assemble_s = 0;   ///< scatter into the fixed-pattern system matrix
+  double factorize_s = 0;  ///< CHOLMOD numeric factorisation
+  double solve_s = 0;      ///< CHOLMOD triangular solves
+  int iterations = 0;
+};
+
 /// Backward Euler for a Model with clamped vertices, gravity, external forces and optionally
 /// prescribed ("constrained") vertices that follow given trajectories (method.md section 4).
 /// Owns the state (x, v) and a CHOLMOD factorisation whose symbolic analysis is reused.
@@ -37,6 +47,8 @@ class Integrator {
   StepOptions& options() { return opts_; }
   /// Newton iterations used by the last step.
   int last_iterations() const { return last_iters_; }
+  /// Phase timings of the last step.
+  const StepTimings& last_timings() const { return timings_; }
 
   /// Vertices whose positions are prescribed at the end of each constrained step.
   void set_prescribed(const VecXi& vertices);
@@ -69,11 +81,13 @@ class Integrator {
   StepOptions opts_;
   MatX3 x_, v_;
   int steps_ = 0, last_iters_ = 0;
+  StepTimings timings_;
   VecXi dof_map_;  // global dof -> free index or -1
   int n_free_ = 0;
   std::unique_ptr<fem::SparseAssembler> assembler_;
   solvers::CholmodSolver solver_;
   SpMat A_;
+  VecX coeff_, diag_;  // per-element matrix coefficients and system diagonal (Rayleigh path)
   double size_;
 };
 

@@ -36,6 +36,19 @@ void define_time(py::module_& m) {
       .def_property_readonly("time_step", &Integrator::time_step)
       .def_property_readonly("steps_taken", &Integrator::steps_taken)
       .def_property_readonly("last_iterations", &Integrator::last_iterations)
+      .def_property_readonly(
+          "last_timings",
+          [](const Integrator& I) {
+            const auto& t = I.last_timings();
+            py::dict d;
+            d["evaluate_s"] = t.evaluate_s;
+            d["assemble_s"] = t.assemble_s;
+            d["factorize_s"] = t.factorize_s;
+            d["solve_s"] = t.solve_s;
+            d["iterations"] = t.iterations;
+            return d;
+          },
+          "Wall-clock seconds per phase of the last step, summed over its Newton iterations.")
       .def_property_readonly("fixed", &Integrator::fixed)
       .def_property_readonly("prescribed", &Integrator::prescribed)
       .def("set_state",
