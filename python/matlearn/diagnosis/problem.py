@@ -1,0 +1,145 @@
+"""The diagnosis problem: a scene, its train/test recordings, and fast marker predictions for
+any model (the objective every effect family is fitted against), plus the honest error floor
+(marker noise + discretisation) below which no effect is claimed."""
+from __future__ import annotations
+
+import numpy as np
+
+from .. import replay
+from ..embedding import embed_points
+from ..materials import Damping, Material
+from ..scene import Scene, load_scene
+
+
+class Problem:
+    """Scene + recordings with their embeddings. `fast_newton` Newton iterations per step are used
+    for fitting (1 = linearised backward Euler: ~3x cheaper, same for every candidate); gaps
+    reported in diagnosis.json use the scene's full Newton solve."""
+
+    def __init__(self, scene: Scene | str, fast_newton: int = 1):
+        self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
+        self.train = [r for r in self.scene.recordings_with_role("train") if r.num_markers > 0]
+        self.test = [r for r in self.scene.recordings_with_role("test") if r.num_markers > 0]
+        if not self.train:
+            raise ValueError("diagnosis needs at least one 'train' recording with markers")
+        self.fast_newton = fast_newton
+        self.object_size = self.scene.object_size
+        self._emb = {}
+        self.simulations = 0
+
+    @property
+    def mesh(self):
+        return self.scene.mesh
+
+    def embedding(self, rec):
+        key = id(rec)
+        if key not in self._emb:
+            self._emb[key] = embed_points(self.scene.mesh, rec.marker_rest)
+        return self._emb[key]
+
+    def predict(self, model, rec, fast: bool = True, full: bool = False):
+        """Predicted markers (T, K, 3) at rec.times; with full=True also (sim_t, X, V)."""
+        newton = self.fast_newton if fast else 8
+        state = replay.initial_state(self.scene, model, rec, self.embedding(rec))
+        sim = replay.simulate_recording(self.scene, model, rec, state=state, max_newton=newton)
+        self.simulations += 1
+        P = replay.predict_markers(self.scene, model, rec, sim=sim, embedding=self.embedding(rec))
+        return (P, sim) if full else P
+
+    def residual(self, model, recs=None, fast: bool = True) -> np.ndarray:
+        """Stacked (prediction - observation) over seen markers of `recs` (default train), in
+        units of the object size; a failed simulation returns a large constant residual."""
+        recs = self.train if recs is None else recs
+        out = []
+        for rec in recs:
+            seen = rec.seen
+            try:
+                P = self.predict(model, rec, fast)
+                r = (P - rec.markers)[seen].ravel() / self.object_size
+                if not np.all(np.isfinite(r)):
+                    raise RuntimeError("non-finite prediction")
+            except RuntimeError:
+                r = np.full(3 * int(seen.sum()), 1.0)
+            out.append(r)
+        return np.concatenate(out)
+
+    def gap(self, model, role: str = "test", fast: bool = False) -> dict:
+        """Held-out gap (max and RMS % of object size, pooled) with the full Newton solve."""
+        recs = self.test if role == "test" else self.train
+        if not recs:
+            recs = self.train  # no held-out recording: score on train, flagged by the caller
+        errs = []
+        for rec in recs:
+            P = self.predict(model, rec, fast=fast)
+            errs.append(replay.trajectory_error(P, rec, self.object_size))
+        e = replay.combine_errors(errs)
+        return {"max_error_pct": e["max_error_pct"], "rms_error_pct": e["rms_error_pct"]}
+
+    # ------------------------------------------------------------------ floors
+    def noise_sigma(self) -> float:
+        """Marker noise (m) from the 4th time difference of the tracks (70 sigma^2 for white
+        noise), robust (median), so smooth motion barely contributes."""
+        vals = []
+        for rec in self.train:
+            m = rec.markers
+            if len(m) < 6:
+                continue
+            d4 = m[4:] - 4 * m[3:-1] + 6 * m[2:-2] - 4 * m[1:-3] + m[:-4]
+            d4 = d4[np.isfinite(d4)]
+            if len(d4):
+                vals.append(d4**2)
+        if not vals:
+            return 0.0
+        # median of chi^2(1) is 0.455
+        return float(np.sqrt(np.median(np.concatenate(vals)) / (70 * 0.455)))
+
+    def refined_scene(self) -> Scene:
+        """The scene on a mesh refined once (each tet split into 8), same material and clamp."""
+        from ..meshes import TetMesh
+
+        V, T = refine_tets(np.asarray(self.mesh.vertices), np.asarray(self.mesh.tets))
+        mesh = TetMesh(V, T)
+        s = self.scene
+        m = s.mesh.num_tets
+        rep = lambda a: np.repeat(np.broadcast_to(np.asarray(a, float), (m,)), 8)  # noqa: E731
+        mat = Material(s.material.model, rep(s.material.youngs_modulus), rep(s.material.poisson_ratio),
+                       rep(s.material.density), list(s.material.edits))
+        fixed_old = np.zeros(s.mesh.num_vertices, bool)
+        fixed_old[s.fixed] = True
+        edges = _edges(np.asarray(self.mesh.tets))
+        fixed_new = np.concatenate([fixed_old, fixed_old[edges].all(axis=1)])
+        return Scene(mesh, mat, Damping(**vars(s.damping)), np.flatnonzero(fixed_new), s.time_step,
+                     s.gravity, list(s.recordings), s.path)
+
+
+def _edges(T: np.ndarray) -> np.ndarray:
+    pairs = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+    E = np.sort(T[:, pairs].reshape(-1, 2), axis=1)
+    return np.unique(E, axis=0)
+
+
+def refine_tets(V: np.ndarray, T: np.ndarray):
+    """Regular 1-to-8 refinement: edge midpoints become vertices (appended after V in the order
+    of the sorted unique edge list), each tet splits into 4 corner tets and 4 octahedron tets."""
+    E = _edges(T)
+    n = len(V)
+    Vn = np.vstack([V, 0.5 * (V[E[:, 0]] + V[E[:, 1]])])
+    key = E[:, 0].astype(np.int64) * n + E[:, 1]
+    order = np.argsort(key)
+
+    def mid(a, b):
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        return n + order[np.searchsorted(key[order], lo.astype(np.int64) * n + hi)]
+
+    a, b, c, d = T.T
+    ab, ac, ad, bc, bd, cd = mid(a, b), mid(a, c), mid(a, d), mid(b, c), mid(b, d), mid(c, d)
+    kids = [
+        (a, ab, ac, ad), (ab, b, bc, bd), (ac, bc, c, cd), (ad, bd, cd, d),
+        (ab, ac, ad, bd), (ab, ac, bc, bd), (ac, ad, bd, cd), (ac, bc, bd, cd),
+    ]
+    Tn = np.stack([np.stack(k, axis=1) for k in kids], axis=1).reshape(-1, 4)
+    # orient positively
+    D = Vn[Tn[:, 1:]] - Vn[Tn[:, :1]]
+    neg = np.linalg.det(D) < 0
+    Tn[neg, 1], Tn[neg, 2] = Tn[neg, 2].copy(), Tn[neg, 1].copy()
+    return Vn, Tn

@@ -1,0 +1,147 @@
+"""Unit checks of the diagnosis building blocks (no full diagnosis run)."""
+import numpy as np
+import pytest
+
+from matlearn import meshes
+from matlearn.diagnosis import fitting, where
+from matlearn.diagnosis.effects import EffectContext, build_model, clamp_layer
+from matlearn.diagnosis.problem import refine_tets
+from matlearn.materials import Damping, Material
+
+
+def _ctx(**kw):
+    mesh = meshes.bar(0.1, 0.02, 0.02, (4, 1, 1))
+    fixed = np.flatnonzero(np.asarray(mesh.vertices)[:, 0] < 1e-9)
+    return EffectContext(mesh, Material("corotated", 1e5, 0.3, 1000.0), Damping(0.0, 0.0), fixed, **kw)
+
+
+def _deformed(mesh, seed=0, amp=0.003):
+    rng = np.random.default_rng(seed)
+    return np.asarray(mesh.vertices) + amp * rng.standard_normal((mesh.num_vertices, 3))
+
+
+def test_refine_tets_conserves_volume_and_is_conforming():
+    V, T = meshes.grid_tets((2, 1, 1), (0.2, 0.1, 0.1))
+    Vn, Tn = refine_tets(V, T)
+    assert Tn.shape == (8 * len(T), 4)
+    vol = lambda V, T: np.linalg.det(V[T[:, 1:]] - V[T[:, :1]]) / 6  # noqa: E731
+    assert np.all(vol(Vn, Tn) > 0)
+    np.testing.assert_allclose(vol(Vn, Tn).sum(), 0.2 * 0.1 * 0.1, rtol=1e-12)
+    # conforming: every interior face is shared by exactly two tets, boundary area is the box's
+    faces = np.sort(Tn[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), axis=1)
+    _, counts = np.unique(faces, axis=0, return_counts=True)
+    assert counts.max() == 2
+    m = meshes.TetMesh(Vn, Tn)
+    F = np.asarray(m.surface_faces)
+    area = 0.5 * np.linalg.norm(np.cross(Vn[F[:, 1]] - Vn[F[:, 0]], Vn[F[:, 2]] - Vn[F[:, 0]]), axis=1)
+    np.testing.assert_allclose(area.sum(), 2 * (0.2 * 0.1 * 2 + 0.1 * 0.1), rtol=1e-12)
+
+
+def test_stiffness_and_region_families_scale_elastic_forces_exactly():
+    ctx = _ctx()
+    x = _deformed(ctx.mesh)
+    v = np.zeros_like(x)
+    f0 = np.asarray(build_model(ctx, {}).forces(x, v))
+    f1 = np.asarray(build_model(ctx, {"stiffness_scale": [np.log(1.7)]}).forces(x, v))
+    np.testing.assert_allclose(f1, 1.7 * f0, rtol=1e-10, atol=1e-12)
+    # a region scale acts on the region's element forces only: linear in the scale
+    ctx.region = np.zeros(ctx.mesh.num_tets, bool)
+    ctx.region[:5] = True
+    fa = np.asarray(build_model(ctx, {"heterogeneity": [np.log(2.0)]}).forces(x, v))
+    fb = np.asarray(build_model(ctx, {"heterogeneity": [np.log(3.0)]}).forces(x, v))
+    np.testing.assert_allclose(fb - f0, 2.0 * (fa - f0), rtol=1e-9, atol=1e-12)
+    # the clamp layer = elements touching a clamped vertex
+    assert np.array_equal(ctx.clamp_layer, clamp_layer(ctx.mesh, ctx.fixed))
+    assert 0 < ctx.clamp_layer.sum() < ctx.mesh.num_tets
+
+
+@pytest.mark.parametrize("name,side", [("tension_nonlinearity", 1.0), ("compression_nonlinearity", -1.0)])
+def test_one_sided_nonlinearity_acts_on_its_side_only(name, side):
+    ctx = _ctx(d_ref=0.02)
+    model = build_model(ctx, {name: [1.5, -0.7]})
+    corr = model.correction
+    S = np.array([[1.03, 0.99, 1.0], [0.97, 1.01, 1.02], [1.0, 1.0, 1.0]])
+    dP = np.asarray(corr.evaluate(S, np.zeros_like(S))[0])
+    active = side * (S - 1) > 0
+    assert np.all(dP[~active] == 0)
+    assert np.all(np.abs(dP[active]) > 0)
+    # the value follows E0 d_ref sum c_k (d/d_ref)^(k+2) with the strain's sign
+    d = np.abs(S - 1) / 0.02
+    want = side * 1e5 * 0.02 * (1.5 * d**2 - 0.7 * d**3) * active
+    np.testing.assert_allclose(dP, want, rtol=1e-12, atol=1e-9)
+
+
+def test_one_sided_nonlinearity_jacobian_matches_finite_differences():
+    ctx = _ctx(d_ref=0.02)
+    corr = build_model(ctx, {"tension_nonlinearity": [2.0, 1.0], "compression_nonlinearity": [1.0, -3.0]}).correction
+    rng = np.random.default_rng(3)
+    S = 1 + 0.04 * rng.standard_normal((6, 3))
+    out = corr.evaluate(S, np.zeros_like(S))
+    J = np.asarray(out[1])
+    eps = 1e-7
+    for j in range(3):
+        Sp, Sm = S.copy(), S.copy()
+        Sp[:, j] += eps
+        Sm[:, j] -= eps
+        fd = (np.asarray(corr.evaluate(Sp, 0 * S)[0]) - np.asarray(corr.evaluate(Sm, 0 * S)[0])) / (2 * eps)
+        np.testing.assert_allclose(J[:, :, j], fd, rtol=1e-5, atol=1e-3)
+
+
+def test_damping_families_map_to_rayleigh_coefficients():
+    ctx = _ctx(omega=20.0, d_ref=0.05)
+    x = np.asarray(ctx.mesh.vertices).copy()
+    v = _deformed(ctx.mesh, 1, 0.01) - x
+    f_el = np.asarray(build_model(ctx, {}).forces(x, v))
+    assert np.allclose(f_el, 0)  # undamped nominal at rest: no force
+    m = build_model(ctx, {"rayleigh_damping": [1.0, 2.0]})
+    aM, aK = 0.1 * 20.0, 2.0 * 0.1 / 20.0
+    M = np.asarray(m.vertex_mass)[:, None]
+    K = m.stiffness(x, 0 * v)
+    want = -aM * M * v - (K @ v.ravel()).reshape(-1, 3) * aK
+    np.testing.assert_allclose(np.asarray(m.forces(x, v)), want, rtol=1e-8, atol=1e-12)
+
+
+def test_linear_fit_recovers_known_parameters():
+    rng = np.random.default_rng(0)
+    J = rng.standard_normal((200, 3))
+    th = np.array([0.3, -1.2, 0.5])
+    r0 = -J @ th
+    est, rss = fitting.linear_fit(J, r0)
+    np.testing.assert_allclose(est, th, rtol=1e-5)
+    assert rss < 1e-8
+
+
+def test_locate_region_picks_the_deviating_patches():
+    rng = np.random.default_rng(1)
+    Jp = rng.standard_normal((300, 8))
+    truth = np.zeros(8)
+    truth[[2, 5]] = -0.8
+    sel, th = fitting.locate_region(Jp, -Jp @ truth, np.arange(8))
+    assert set(np.flatnonzero(sel)) == {2, 5}
+
+
+def test_score_prefers_fewer_parameters_at_equal_fit_and_ignores_gains_below_floor():
+    a = fitting.score(1.0, 1, 500, 0.1)
+    b = fitting.score(1.0, 2, 500, 0.1)
+    assert a < b
+    # halving an rss already far below the floor barely changes the score
+    assert abs(fitting.score(1e-4, 1, 500, 1.0) - fitting.score(5e-5, 1, 500, 1.0)) < 0.1
+
+
+def test_regime_split_of_a_tension_only_residual():
+    rng = np.random.default_rng(2)
+    F, m = 20, 30
+    Fh = 1 + 0.05 * rng.standard_normal((F, m, 3))
+    Fhd = rng.standard_normal((F, m, 3))
+    dp = np.where(Fh > 1, 1e3 * (Fh - 1) ** 2, 0.0)  # elastic, tension side only
+    field = where.ResidualField(np.arange(F) * 0.01, np.zeros((F, 4, 3)), dp, Fh, Fhd,
+                                np.zeros((F, 4, 3)), np.ones(m))
+    r = where.regime_split(field)
+    assert r["tension"] == pytest.approx(1.0)
+    assert r["elastic"] > 0.8
+    np.testing.assert_allclose(r["tension"] + r["compression"], 1.0)
+    np.testing.assert_allclose(r["elastic"] + r["dissipative"], 1.0)
+    # a purely rate-proportional residual is dissipative
+    field.dp = 50.0 * Fhd
+    r = where.regime_split(field)
+    assert r["dissipative"] > 0.99
