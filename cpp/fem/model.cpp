@@ -72,6 +72,10 @@ namespace {
 
 using Vec9 = Eigen::Matrix<double, 9, 1>;
 
+// Below this many elements a parallel region costs more than it saves (thread wake-up, and
+// on a loaded machine the wait for a descheduled peer thread: 4x slower steps at 1k tets).
+constexpr int kParallelMinTets = 4096;
+
 /// Principal-frame shape columns of a tet: column 3a + k (vertex a+1 of the tet, coordinate k)
 /// is vec(U^T dF V) for a unit displacement of that DOF, i.e. the outer product
 /// U.row(k)^T (Bm V).row(a). Vertex 0 is minus the sum of the others (translation invariance).
@@ -130,7 +134,7 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   st.Fh.resize(m, 3);
   st.Fhdot.resize(m, 3);
   st.Fdot.resize(m);
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if (m >= kParallelMinTets)
   for (int e = 0; e < m; ++e) {
     const Mat3 F = mesh_->deformation_gradient(x, e);
     st.Fdot[e] = mesh_->deformation_gradient(v, e);
@@ -154,7 +158,7 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   if (flags & kDamping) st.D.resize(m);
   if (flags & kNominalKv) st.Kv.resize(m);
   const bool need_nominal = flags & (kForce | kDamping | kNominalKv);
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if (m >= kParallelMinTets)
   for (int e = 0; e < m; ++e) {
     const Vec3 s = st.Fh.row(e).transpose();
     const double W = mesh_->volumes()[e];
