@@ -151,3 +151,57 @@ class CloudObservation:
         cols = np.tile(np.arange(3 * K).reshape(K, 3), (1, 3)).ravel()
         Jb = sp.csr_matrix((B.ravel(), (rows, cols)), shape=(3 * K, 3 * K))
         return (self.lam * Jb) @ self._E3
+
+
+# ---------------------------------------------------------------------------- point-to-surface
+@dataclass
+class SurfaceMatch:
+    """Each cloud point's closest point on the current surface: triangle `face` (N,), barycentric
+    weights `bary` (N, 3) of its vertices `tri` (N, 3), offset c_n - p_n (N, 3) and Gaussian weight
+    w_n = exp(-|c_n - p_n|^2 / (2 sigma^2)) (0 beyond `cutoff` sigma: outliers)."""
+
+    tri: np.ndarray
+    bary: np.ndarray
+    offset: np.ndarray
+    weight: np.ndarray
+
+    def vertex_offsets(self, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per-vertex weighted mean offset (n, 3) (0 where unsupported) and gathered weight W (n,):
+        W_b = sum_n w_n bary_nb, offset_b = sum_n w_n bary_nb (c_n - p_n) / W_b."""
+        wb = (self.weight[:, None] * self.bary).ravel()
+        idx = self.tri.ravel()
+        W = np.bincount(idx, wb, minlength=num_vertices)
+        off = np.stack(
+            [np.bincount(idx, wb * np.repeat(self.offset[:, d], 3), minlength=num_vertices) for d in range(3)],
+            axis=1,
+        )
+        return off / np.maximum(W, 1e-300)[:, None], W
+
+
+def match_surface(X: np.ndarray, faces: np.ndarray, cloud: np.ndarray, sigma: float,
+                  cutoff: float = 3.0) -> SurfaceMatch:
+    """Closest points of the cloud on the triangle surface (X (n, 3), faces (F, 3)), via open3d's
+    ray-casting scene (BVH, C++); positions recomputed in float64 from the barycentrics."""
+    import open3d as o3d
+
+    if not sigma > 0:
+        raise ValueError(f"sigma must be > 0 (m), got {sigma}")
+    X = np.asarray(X, float)
+    faces = np.asarray(faces, np.int64)
+    cloud = np.asarray(cloud, float).reshape(-1, 3)
+    if len(cloud) == 0:
+        z = np.zeros((0, 3))
+        return SurfaceMatch(np.zeros((0, 3), np.int64), z, z, np.zeros(0))
+    sc = o3d.t.geometry.RaycastingScene()
+    sc.add_triangles(o3d.core.Tensor(X.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    ans = sc.compute_closest_points(o3d.core.Tensor(cloud.astype(np.float32)))
+    f = ans["primitive_ids"].numpy().astype(np.int64)
+    uv = ans["primitive_uvs"].numpy().astype(np.float64)
+    bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+    tri = faces[f]
+    p = np.einsum("nj,njd->nd", bary, X[tri])
+    off = cloud - p
+    d2 = np.einsum("nd,nd->n", off, off)
+    w = np.exp(-0.5 * d2 / sigma**2)
+    w[d2 > (cutoff * sigma) ** 2] = 0.0
+    return SurfaceMatch(tri, bary, off, w)

@@ -1,0 +1,24 @@
+"""Point clouds and partial views (method.md section 7): a virtual depth scanner, probabilistic
+cloud-surface correspondences (observation residual and Jacobian in C++), a physics-based
+tracker, the conversion of cloud recordings to marker recordings, and real-scan ingestion.
+
+Public API:
+
+* :func:`scan_recording`, :class:`ScanSettings`, :class:`Camera`, :func:`default_cameras`,
+  :func:`write_cloud_folder` -- virtual scans of simulated motion;
+* :func:`correspond`, :class:`CloudObservation`, :func:`surface_samples` -- Gaussian
+  correspondences p_kn and the observation residual r_k = sum_n p_kn (c_n - s_k) / sigma^2 with
+  its Jacobian; :func:`match_surface` -- point-to-surface matches;
+* :func:`track`, :class:`TrackOptions`, :class:`TrackResult` -- tracking the model mesh through
+  a cloud sequence; :func:`tracked_markers` -- a cloud recording as a marker recording;
+* :func:`make_scene_from_scans` -- a scene from a surface mesh, a folder of scans and a clamp box.
+"""
+from .correspondence import CloudObservation, Correspondence, SurfaceMatch, correspond, match_surface, surface_samples
+from .scanner import Camera, ScanSettings, default_cameras, scan_recording, scan_sequence, write_cloud_folder
+from .tracking import TrackOptions, TrackResult, track, tracked_markers
+
+__all__ = [
+    "Camera", "CloudObservation", "Correspondence", "ScanSettings", "SurfaceMatch", "TrackOptions",
+    "TrackResult", "correspond", "default_cameras", "match_surface", "scan_recording",
+    "scan_sequence", "surface_samples", "track", "tracked_markers", "write_cloud_folder",
+]
