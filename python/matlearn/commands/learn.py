@@ -1,0 +1,78 @@
+"""`matlearn learn SCENE --out RUN`: learn an elastic + damping correction from the scene's train
+recordings (method.md sections 4-6), score it on the test recordings, distil it into an MLP, and
+write RUN/model.npz + model.json (for `matlearn simulate --model RUN`), metrics.json,
+convergence.png and error_histograms.png."""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def run(args) -> int:
+    from ..learning import LearnOptions, learn, save_model
+    from ..learning.plots import plot_convergence, plot_error_histograms
+    from ..scene import load_scene
+
+    scene = load_scene(args.scene)
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.resume and not args.force:
+        raise ValueError(f"{out} exists and is not empty; use --resume to continue it or --force")
+    opts = LearnOptions(iterations=args.iterations, lam=args.lam, modes=args.modes,
+                        centers=args.centers, seed=args.seed)
+    t0 = time.time()
+    log = (lambda *a: print(*a, file=sys.stderr, flush=True)) if not args.quiet else None
+    res = learn(scene, out, opts, resume=args.resume, log=log)
+    params = res["params"]
+    summary = {"scene": str(Path(args.scene).resolve()), "best_iteration": res["best_iteration"],
+               "nominal": res["nominal"], "final": res["final"], "wall_s": None}
+    mlp = None
+    if params is None:
+        print("the nominal model fits best; writing a zero correction", file=sys.stderr)
+        import numpy as np
+
+        from ..learning.fit import RbfParams
+
+        params = RbfParams(np.ones((1, 3)), np.zeros((1, 3)))
+    elif not args.no_distill:
+        from ..learning.distill import compare, simulation_samples, train_mlp
+        from ..learning.io import mlp_correction
+
+        if log:
+            log("distilling into an MLP 6-6-6-3 ...")
+        X, Y = simulation_samples(scene, params.correction(), scene.recordings_with_role("train"),
+                                  seed=args.seed)
+        mlp, tinfo = train_mlp(X, Y, seed=args.seed)
+        summary["distill"] = {**tinfo, **compare(params.correction(), mlp_correction(mlp), X, Y)}
+    save_model(out, params, mlp, meta={"scene": summary["scene"], "best_iteration": res["best_iteration"]})
+    plot_convergence(res["metrics"], out / "convergence.png")
+    import numpy as np
+
+    with np.load(out / "error_samples.npz") as z:
+        plot_error_histograms({k: z[k] for k in z.files}, out / "error_histograms.png")
+    summary["wall_s"] = time.time() - t0
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    nom, fin = res["nominal"], res["final"]
+    role = "test" if nom.get("test") else "train"
+    print(f"{role} max error: nominal {nom[role]['max_error_pct']:.3f}% -> learned "
+          f"{fin[role]['max_error_pct']:.3f}% (iteration {res['best_iteration']}); model in {out}")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("learn", help="learn an elastic + damping correction from recordings",
+                              description=__doc__)
+    p.add_argument("scene", help="scene.toml with train (and test) recordings")
+    p.add_argument("--out", required=True, help="run folder for the model, metrics and plots")
+    p.add_argument("--iterations", type=int, default=8, help="max outer iterations (default 8)")
+    p.add_argument("--resume", action="store_true", help="continue a killed run in --out")
+    p.add_argument("--force", action="store_true", help="write into a non-empty --out")
+    p.add_argument("--lambda", dest="lam", type=float, default=1.0,
+                   help="dimensionless observation weight (default 1; 0.01 .. 1e5 work)")
+    p.add_argument("--modes", type=int, default=20, help="POD modes r (default 20)")
+    p.add_argument("--centers", type=int, default=24, help="RBF centres (default 24)")
+    p.add_argument("--no-distill", action="store_true", help="skip the MLP distillation")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=run)

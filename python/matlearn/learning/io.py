@@ -1,0 +1,80 @@
+"""Learned models on disk: `RUN/model.npz` (arrays) + `RUN/model.json` (metadata).
+
+`load_model(RUN)` returns a `_core.correction.*` object ready for `Model.correction` (used by
+`matlearn simulate --model RUN`). A run holds the RBF correction and, after distillation, the
+MLP; `model.json["use"]` says which one `load_model` returns by default.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import _core
+from .fit import RbfParams
+
+MODEL_NPZ = "model.npz"
+MODEL_JSON = "model.json"
+
+
+def save_model(run_dir, rbf: RbfParams, mlp: dict | None = None, meta: dict | None = None,
+               use: str = "rbf") -> Path:
+    """Write the model of a run. mlp: dict(layers=[(W, b), ...], in_mean, in_std, out_mean,
+    out_std) (BN already folded); use: "rbf" or "mlp"."""
+    if use not in ("rbf", "mlp"):
+        raise ValueError(f"use must be 'rbf' or 'mlp', got {use!r}")
+    if use == "mlp" and mlp is None:
+        raise ValueError("use='mlp' needs an mlp")
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    arrays = rbf.to_arrays()
+    if mlp is not None:
+        for i, (W, b) in enumerate(mlp["layers"]):
+            arrays[f"mlp_W{i}"] = np.asarray(W, float)
+            arrays[f"mlp_b{i}"] = np.asarray(b, float)
+        for k in ("in_mean", "in_std", "out_mean", "out_std"):
+            arrays[f"mlp_{k}"] = np.asarray(mlp[k], float)
+    with open(run / MODEL_NPZ, "wb") as f:
+        np.savez(f, **arrays)
+    info = {"format": "matlearn-model-1", "use": use, "has_mlp": mlp is not None,
+            "mlp_layers": len(mlp["layers"]) if mlp is not None else 0, **(meta or {})}
+    (run / MODEL_JSON).write_text(json.dumps(info, indent=1))
+    return run / MODEL_NPZ
+
+
+def load_rbf(run_dir) -> RbfParams:
+    with np.load(Path(run_dir) / MODEL_NPZ) as z:
+        return RbfParams.from_arrays(z)
+
+
+def load_mlp(run_dir) -> dict:
+    run = Path(run_dir)
+    info = json.loads((run / MODEL_JSON).read_text())
+    if not info.get("has_mlp"):
+        raise ValueError(f"{run}: this run has no distilled MLP")
+    with np.load(run / MODEL_NPZ) as z:
+        layers = [(z[f"mlp_W{i}"], z[f"mlp_b{i}"]) for i in range(info["mlp_layers"])]
+        return {"layers": layers, **{k: z[f"mlp_{k}"] for k in ("in_mean", "in_std", "out_mean", "out_std")}}
+
+
+def mlp_correction(mlp: dict):
+    return _core.correction.MlpCorrection(
+        [(np.asarray(W, float), np.asarray(b, float)) for W, b in mlp["layers"]],
+        np.asarray(mlp["in_mean"], float), np.asarray(mlp["in_std"], float),
+        np.asarray(mlp["out_mean"], float), np.asarray(mlp["out_std"], float))
+
+
+def load_model(run_dir, kind: str | None = None):
+    """The learned correction of run `run_dir` (a folder written by `matlearn learn`).
+    kind: "rbf", "mlp" or None (the run's choice in model.json)."""
+    run = Path(run_dir)
+    if not (run / MODEL_NPZ).exists() or not (run / MODEL_JSON).exists():
+        raise FileNotFoundError(f"{run}: not a learned-model folder (no {MODEL_NPZ}/{MODEL_JSON})")
+    info = json.loads((run / MODEL_JSON).read_text())
+    kind = kind or info.get("use", "rbf")
+    if kind == "rbf":
+        return load_rbf(run).correction()
+    if kind == "mlp":
+        return mlp_correction(load_mlp(run))
+    raise ValueError(f"kind must be 'rbf' or 'mlp', got {kind!r}")
