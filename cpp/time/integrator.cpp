@@ -85,8 +85,14 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
     // same projected tangent), so the system matrix is assembled from K alone with per-element
     // coefficients: half the element data to compute, store and scatter.
     const bool rayleigh_only = model_->correction() == nullptr;
-    model_->evaluate(x, v, fem::kForce | fem::kStiffness | (rayleigh_only ? 0 : fem::kDamping),
-                     true, st);
+    try {
+      model_->evaluate(x, v, fem::kForce | fem::kStiffness | (rayleigh_only ? 0 : fem::kDamping),
+                       true, st);
+    } catch (const NumericalError& err) {  // e.g. a correction returning NaN: say when
+      std::ostringstream os;
+      os << "step " << steps_ << ", Newton iteration " << it << ": " << err.what();
+      throw NumericalError(os.str());
+    }
     const VecX f = model_->gather_forces(st);
     timings_.evaluate_s += seconds_since(t0);
     VecX g(n_free_);
