@@ -137,3 +137,42 @@ def test_tracked_markers_and_markers_scene(bar_case, tmp_path):
     assert err.max() < 1.5
     assert (tmp_path / "run" / "scan" / "surface_00000.ply").exists()
     assert (tmp_path / "run" / "scan_track.csv").read_text().startswith("time,points,rms_m")
+
+
+def test_make_scene_from_scans(tmp_path):
+    """Real-data ingestion: a closed surface (.obj) + .ply folders + a clamp box -> a scene
+    with cloud recordings and its tracked-marker twin that the learning loop reads."""
+    import trimesh
+
+    from matlearn.clouds.ingest import make_scene_from_scans
+
+    surf = trimesh.creation.box(extents=(0.1, 0.02, 0.02))
+    surf.apply_translation((0.05, 0.0, 0.0))
+    surf.export(tmp_path / "bar.obj")
+    mesh = meshes.load_mesh(tmp_path / "bar.obj", max_volume=2e-6)
+    V, F = np.asarray(mesh.vertices), np.asarray(mesh.surface_faces)
+    # A static object (at rest) scanned for 6 frames, two recordings.
+    dirs = []
+    for i in range(2):
+        pts, off = scan_sequence(np.repeat(V[None], 6, axis=0), F, default_cameras(V, 2),
+                                 ScanSettings(noise=2e-4, seed=i))
+        dirs.append(write_cloud_folder(tmp_path / f"rec{i}", 0.005 * np.arange(6), pts, off))
+    with pytest.raises(ValueError, match="contains no mesh vertex"):
+        make_scene_from_scans(tmp_path / "bar.obj", dirs, [[5, 5, 5], [6, 6, 6]], tmp_path / "bad",
+                              max_volume=2e-6)
+    path = make_scene_from_scans(tmp_path / "bar.obj", dirs, [[-1, -1, -1], [1e-3, 1, 1]], tmp_path / "out",
+                                 material=Material("corotated", 1e6, 0.4, 1000.0), cloud_sigma=2e-4,
+                                 at_rest_initially=True, max_volume=2e-6)
+    sc = load_scene(path)
+    assert [r for _, r in sc.recordings] == ["train", "test"]
+    assert len(sc.fixed) > 0
+    cloud_scene = load_scene(tmp_path / "out" / "scene.toml")
+    assert load_recording(cloud_scene.recording_paths("train")[0]).has_clouds
+    rec = load_recording(sc.recording_paths("train")[0])
+    Vs = np.asarray(sc.mesh.vertices)
+    seen = rec.seen
+    assert seen.mean() > 0.3
+    # The object does not move (gravity aside: E = 1 MPa sag of a 0.1 m bar is < 0.1 mm).
+    err = np.linalg.norm(rec.markers - rec.marker_rest[None], axis=2)[seen]
+    assert err.max() < 1e-3
+    np.testing.assert_allclose(rec.marker_rest, Vs[np.unique(np.asarray(sc.mesh.surface_faces))])
