@@ -108,7 +108,7 @@ def case_specs():
     }
 
 
-def build_case(work: Path, name: str, spec: dict, seed: int) -> tuple[Path, np.ndarray | None]:
+def build_case(work: Path, name: str, spec: dict, seed: int, reuse: bool = True) -> tuple[Path, np.ndarray | None]:
     L, W = spec["L"], 0.035
     cells = spec["cells"]
     model_mesh = _bar(L, W, W, cells)
@@ -153,6 +153,8 @@ def build_case(work: Path, name: str, spec: dict, seed: int) -> tuple[Path, np.n
                    Motion("release", "train", dur, twist={"box": tip, "torque": [0.04 * f, 0, 0]}),
                    Motion("release", "test", dur, load={"box": tip, "force": [0.3 * f, 0.8 * f, -f]})]
     nominal = Material("corotated", E0, nu0, RHO)
+    if reuse and (work / name / "scene.toml").exists():
+        return work / name / "scene.toml", region_model
     path = make_case(work, name, truth_mesh, truth_mat, truth_damping, model_mesh, nominal,
                      nominal_damping, [[-1, -1, -1], [1e-6, 1, 1]], motions,
                      marker_fraction=0.3, noise=2e-5, seed=seed, truth_correction=correction)
@@ -207,7 +209,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", default=str(ROOT / "work" / "diagnosis_suite"))
     ap.add_argument("--only", nargs="*")
-    ap.add_argument("--fresh", action="store_true", help="ignore cached per-case results")
+    ap.add_argument("--fresh", action="store_true", help="rebuild cases and rediagnose")
+    ap.add_argument("--rediagnose", action="store_true", help="keep built cases, rediagnose")
     args = ap.parse_args(argv)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -217,12 +220,12 @@ def main(argv=None):
     for i, name in enumerate(names):
         spec = specs[name]
         cache = work / name / "suite_row.json"
-        if cache.exists() and not args.fresh:
+        if cache.exists() and not (args.fresh or args.rediagnose):
             rows.append(json.loads(cache.read_text()))
             print(f"{name}: cached", file=sys.stderr)
             continue
         print(f"== {name} ({i + 1}/{len(names)}): building truth", file=sys.stderr, flush=True)
-        path, region_model = build_case(work, name, spec, seed=100 + i)
+        path, region_model = build_case(work, name, spec, seed=100 + i, reuse=not args.fresh)
         t0 = time.time()
         result = diagnose(path, work / name / "diagnosis", seed=0, report=(name in ("heterogeneity",)))
         row = score_case(name, spec, result, region_model, time.time() - t0)

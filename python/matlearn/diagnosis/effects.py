@@ -76,6 +76,11 @@ class EffectContext:
     omega: float = 30.0  # dominant angular frequency (rad/s)
     region: np.ndarray | None = None  # bool (#T): heterogeneity region
     clamp_layer: np.ndarray = field(default=None)  # bool (#T): elements touching the clamp
+    # discretisation: log stiffness offset folded into `material` (baseline), the offset that
+    # matches the once-refined mesh, and the plausible range (see pipeline._discretisation)
+    offset_applied: float = 0.0
+    offset_reference: float = 0.0
+    offset_range: tuple = (0.0, 0.0)
 
     def __post_init__(self):
         if self.clamp_layer is None:
@@ -169,7 +174,16 @@ def build_model(ctx: EffectContext, params: dict):
 def describe(name: str, theta, ctx: EffectContext) -> dict:
     """Physical parameter values of a fitted family, for diagnosis.json."""
     t = np.asarray(theta, float)
-    if name in ("stiffness_scale", "heterogeneity", "support_compliance", "density"):
+    if name in ("stiffness_scale", "density"):
+        # relative to a model as fine as the once-refined mesh; the range spans truths from
+        # 1.5x finer than the model to the continuum
+        sign = 1.0 if name == "stiffness_scale" else -1.0
+        tot = t[0] + sign * ctx.offset_applied
+        lo, hi = ctx.offset_range
+        return {"scale": float(np.exp(tot - sign * ctx.offset_reference)),
+                "scale_range": sorted([float(np.exp(tot - sign * lo)), float(np.exp(tot - sign * hi))]),
+                "scale_on_model_mesh": float(np.exp(tot))}
+    if name in ("heterogeneity", "support_compliance"):
         return {"scale": float(np.exp(t[0]))}
     if name == "poisson_ratio":
         nu0 = float(np.median(np.asarray(ctx.material.poisson_ratio, float)))

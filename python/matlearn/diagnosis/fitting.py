@@ -33,6 +33,7 @@ def residual_of(problem, ctx, params: dict, recs=None) -> np.ndarray:
     return problem.residual(build_model(ctx, params), recs)
 
 
+
 def sensitivities(problem, ctx, r0, names, step=0.1, progress=None):
     """{family: (J (N x k), thetas)} by forward differences around theta = 0."""
     out = {}
@@ -62,11 +63,11 @@ def linear_fit(J: np.ndarray, r0: np.ndarray, max_step: float = 3.0):
 
 
 def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, step=0.07,
-           progress=None, target=None) -> Fit:
+           progress=None, target=None, recs=None) -> Fit:
     """Levenberg-Marquardt over the joint parameters of `names` on simulated residuals (minus
     `target`, a residual vector to match instead of the observations, if given)."""
     def res(params):
-        r = residual_of(problem, ctx, params)
+        r = residual_of(problem, ctx, params, recs)
         return r if target is None else r - target
 
     sizes = [len(FAMILIES[n].parameters) for n in names]

@@ -1,0 +1,14 @@
+"""A control case (truth = nominal material on a finer mesh) yields verdict []: the
+discretisation gap alone is not reported as an effect."""
+from matlearn.diagnosis import diagnose
+
+from diagnosis_cases import FAST, tiny_case
+
+
+def test_control_case_claims_no_effect(tmp_path):
+    scene = tiny_case(tmp_path, "control", E_scale=1.0, seed=3)
+    result = diagnose(scene, tmp_path / "out", progress=lambda m: None, **FAST)
+    assert result["verdict"] == []
+    # the raw gap is not zero (coarse mesh), it is within the estimated floor
+    assert result["gap_before"]["max_error_pct"] > 0
+    assert result["floor"]["rss_train"] < 2.5 * result["floor"]["rss_floor"]
