@@ -176,3 +176,22 @@ def test_make_scene_from_scans(tmp_path):
     err = np.linalg.norm(rec.markers - rec.marker_rest[None], axis=2)[seen]
     assert err.max() < 1e-3
     np.testing.assert_allclose(rec.marker_rest, Vs[np.unique(np.asarray(sc.mesh.surface_faces))])
+
+
+def test_refresh_markers_moves_towards_clouds(bar_case):
+    """Re-estimating at a wrong trajectory (30 % too much displacement, as a wrong model gives)
+    pulls the seen vertices back towards the truth."""
+    from matlearn.clouds.tracking import refresh_markers
+
+    scene, rec, X, _ = bar_case
+    V = np.asarray(scene.mesh.vertices)
+    Xp = V + 1.3 * (X - V)
+    m = refresh_markers(scene, rec, rec.times, Xp)
+    sv = np.unique(np.asarray(scene.mesh.surface_faces))
+    seen = m.seen
+    before = np.linalg.norm(Xp[:, sv] - X[:, sv], axis=2)[seen]
+    after = np.linalg.norm(m.markers - X[:, sv], axis=2)[seen]
+    print(np.sqrt(np.mean(after**2)) / np.sqrt(np.mean(before**2)))
+    assert np.sqrt(np.mean(after**2)) < 0.5 * np.sqrt(np.mean(before**2))
+    with pytest.raises(ValueError, match="expected shape"):
+        refresh_markers(scene, rec, rec.times, Xp[:, :5])

@@ -11,14 +11,18 @@ Public API:
   its Jacobian; :func:`match_surface` -- point-to-surface matches;
 * :func:`track`, :class:`TrackOptions`, :class:`TrackResult` -- tracking the model mesh through
   a cloud sequence; :func:`tracked_markers` -- a cloud recording as a marker recording;
-* :func:`make_scene_from_scans` -- a scene from a surface mesh, a folder of scans and a clamp box.
+  :func:`refresh_markers` -- the same re-estimated at a new (space-time) trajectory;
+* :func:`as_marker_recordings` -- the learning loop's hook: cloud recordings -> tracked markers;
+  :func:`markers_scene` -- a whole scene converted (what `matlearn track` writes);
+* :func:`make_scene_from_scans` -- a scene from a surface mesh, folders of scans and a clamp box.
 """
 from .correspondence import CloudObservation, Correspondence, SurfaceMatch, correspond, match_surface, surface_samples
+from .ingest import as_marker_recordings, make_scene_from_scans, markers_scene
 from .scanner import Camera, ScanSettings, default_cameras, scan_recording, scan_sequence, write_cloud_folder
-from .tracking import TrackOptions, TrackResult, track, tracked_markers
+from .tracking import TrackOptions, TrackResult, refresh_markers, track, tracked_markers
 
 __all__ = [
     "Camera", "CloudObservation", "Correspondence", "ScanSettings", "SurfaceMatch", "TrackOptions",
-    "TrackResult", "correspond", "default_cameras", "match_surface", "scan_recording",
-    "scan_sequence", "surface_samples", "track", "tracked_markers", "write_cloud_folder",
+    "TrackResult", "as_marker_recordings", "correspond", "default_cameras", "match_surface", "scan_recording",
+    "make_scene_from_scans", "markers_scene", "refresh_markers", "scan_sequence", "surface_samples", "track", "tracked_markers", "write_cloud_folder",
 ]

@@ -24,6 +24,15 @@ from ..scene import Scene, load_scene, save_scene, vertices_in_box
 from .tracking import TrackOptions, track, tracked_markers
 
 
+def as_marker_recordings(scene, recordings, opts: TrackOptions | None = None) -> list:
+    """The integration point for learning: each recording that has clouds but no markers is
+    replaced by its tracked-marker recording (:func:`.tracking.tracked_markers`); others are
+    returned unchanged. A learner calls this on `scene.recordings_with_role(...)` so that
+    cloud recordings take the marker path."""
+    return [tracked_markers(scene, r, None, opts) if (r.num_markers == 0 and r.has_clouds) else r
+            for r in recordings]
+
+
 def markers_scene(scene_path, out_dir, opts: TrackOptions | None = None, progress: bool = False,
                   write_surfaces: bool = False, write_vtu: bool = False) -> Path:
     """Track every cloud-only recording of the scene and write `out_dir/scene.toml` whose

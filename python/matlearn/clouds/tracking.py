@@ -324,3 +324,35 @@ def tracked_markers(scene, rec: Recording, result: TrackResult | None = None,
     rest = np.asarray(scene.mesh.vertices)[sv]
     return Recording(rec.times, rest, pos, at_rest_initially=rec.at_rest_initially,
                      drive_rest=rec.drive_rest, drive=rec.drive)
+
+
+def refresh_markers(scene, rec: Recording, sim_times: np.ndarray, X: np.ndarray, model=None,
+                    opts: TrackOptions | None = None) -> Recording:
+    """Re-estimate the correspondences of a cloud recording at a new trajectory (method.md
+    section 7: "re-estimating p as the space-time solve proceeds"): the trajectory X
+    (S, n, 3) at `sim_times` is interpolated to each recording frame, corrected towards
+    that frame's cloud (em_iterations of the tracker's point-to-plane correction, beta = 1) and returned as a
+    tracked-marker recording like :func:`tracked_markers`. A learning loop calls this between
+    outer iterations with the current space-time trajectory so that the virtual markers follow
+    the improving model instead of staying at the nominal tracker's estimate."""
+    opts = opts or TrackOptions()
+    model = model if model is not None else scene.model()
+    n = scene.mesh.num_vertices
+    X = np.asarray(X, float)
+    if X.ndim != 3 or X.shape[1:] != (n, 3) or len(X) != len(sim_times):
+        raise ValueError(f"X: expected shape ({len(sim_times)}, {n}, 3), got {X.shape}")
+    sigma = opts.sigma or default_sigma(scene.mesh, rec.cloud_sigma)
+    corr = _Corrector(scene, model, opts)
+    didx, _ = drive_vertices(scene, rec)
+    Xf = interpolate_frames(np.asarray(sim_times, float), X, rec.times)
+    support = np.zeros((rec.num_frames, n))
+    zero = np.zeros((n, 3))
+    for j in range(rec.num_frames):
+        cloud = rec.cloud(j)
+        if len(cloud) == 0:
+            continue
+        for _ in range(opts.em_iterations):
+            Xf[j] = Xf[j] + corr.correction(Xf[j], zero, cloud, sigma, 1.0, held=didx)
+        support[j] = corr.support(Xf[j], cloud, sigma)
+    res = TrackResult(np.asarray(rec.times), Xf, np.zeros_like(Xf), support, sigma, {})
+    return tracked_markers(scene, rec, res, opts)
