@@ -80,39 +80,39 @@ class SidePoly:
 def case_specs():
     """name -> dict(true_effects, shape, truth edits). Magnitudes/signs vary on purpose."""
     return {
-        "control": dict(effects=[], L=0.14, cells=(6, 2, 2)),
-        "stiffness_scale": dict(effects=["stiffness_scale"], L=0.15, cells=(6, 2, 2), E=1.4),
-        "poisson_ratio": dict(effects=["poisson_ratio"], L=0.13, cells=(6, 2, 2), nu=0.2),
-        "tension_nonlinearity": dict(effects=["tension_nonlinearity"], L=0.15, cells=(6, 2, 2),
+        "control": dict(effects=[], L=0.14, cells=(8, 3, 3)),
+        "stiffness_scale": dict(effects=["stiffness_scale"], L=0.15, cells=(8, 3, 3), E=1.4),
+        "poisson_ratio": dict(effects=["poisson_ratio"], L=0.13, W=0.03, H=0.04, cells=(8, 3, 3), nu=0.2),
+        "tension_nonlinearity": dict(effects=["tension_nonlinearity"], L=0.15, cells=(8, 3, 3),
                                      side=(1.0, 3.0, 40.0)),
         "compression_nonlinearity": dict(effects=["compression_nonlinearity"], L=0.14,
-                                         cells=(6, 2, 2), side=(-1.0, 3.0, 40.0)),
-        "rayleigh_damping": dict(effects=["rayleigh_damping"], L=0.15, cells=(6, 2, 2),
+                                         cells=(8, 3, 3), side=(-1.0, 3.0, 40.0)),
+        "rayleigh_damping": dict(effects=["rayleigh_damping"], L=0.15, W=0.03, cells=(8, 3, 3),
                                  damping=Damping(4.0, 0.004)),
         "strain_dependent_damping": dict(effects=["strain_dependent_damping"], L=0.14,
-                                         cells=(6, 2, 2),
+                                         cells=(8, 3, 3),
                                          damping=Damping(0.0, 0.002, [], [0.3, 40.0])),
-        "heterogeneity": dict(effects=["heterogeneity"], L=0.16, cells=(7, 2, 2),
+        "heterogeneity": dict(effects=["heterogeneity"], L=0.16, cells=(9, 3, 3),
                               region=(0.35, 0.65), region_scale=0.3),
-        "density": dict(effects=["density"], L=0.14, cells=(6, 2, 2), rho=1.5),
-        "support_compliance": dict(effects=["support_compliance"], L=0.15, cells=(6, 2, 2),
+        "density": dict(effects=["density"], L=0.14, W=0.04, H=0.03, cells=(8, 3, 3), rho=1.5),
+        "support_compliance": dict(effects=["support_compliance"], L=0.15, cells=(8, 3, 3),
                                    soft_layer=0.1),
-        "history_dependence": dict(effects=["history_dependence"], L=0.15, cells=(6, 2, 2),
+        "history_dependence": dict(effects=["history_dependence"], L=0.15, cells=(8, 3, 3),
                                    damage=(8.0, 0.5)),
         "combined_stiffness_damping": dict(effects=["stiffness_scale", "rayleigh_damping"],
-                                           L=0.15, cells=(6, 2, 2), E=0.7,
+                                           L=0.15, cells=(8, 3, 3), E=0.7,
                                            damping=Damping(3.0, 0.004)),
         "combined_heterogeneity_tension": dict(effects=["heterogeneity", "tension_nonlinearity"],
-                                               L=0.16, cells=(7, 2, 2), region=(0.0, 0.3),
+                                               L=0.16, cells=(9, 3, 3), region=(0.0, 0.3),
                                                region_scale=2.5, side=(1.0, 2.0, 40.0)),
     }
 
 
 def build_case(work: Path, name: str, spec: dict, seed: int, reuse: bool = True) -> tuple[Path, np.ndarray | None]:
-    L, W = spec["L"], 0.035
+    L, W, H = spec["L"], spec.get("W", 0.035), spec.get("H", 0.035)
     cells = spec["cells"]
-    model_mesh = _bar(L, W, W, cells)
-    truth_mesh = _bar(L, W, W, tuple(int(round(1.5 * c)) if c > 2 else 3 for c in cells))
+    model_mesh = _bar(L, W, H, cells)
+    truth_mesh = _bar(L, W, H, tuple(int(np.ceil(1.5 * c)) for c in cells))
     E0, nu0 = 6e5, 0.4
     m = truth_mesh.num_tets
     C = np.asarray(truth_mesh.vertices)[np.asarray(truth_mesh.tets)].mean(axis=1)

@@ -15,7 +15,7 @@ from diagnosis_cases import FAST, tiny_case
 def stiff(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("diag")
     scene = tiny_case(tmp, "stiff", E_scale=1.5)
-    result = diagnose(scene, tmp / "out", progress=lambda m: None, **FAST)
+    result = diagnose(scene, tmp / "out", progress=lambda m: None, **dict(FAST, report=True))
     return result, tmp / "out"
 
 
@@ -65,3 +65,16 @@ def test_diagnosis_json_follows_the_public_format(stiff):
 def test_cli_rejects_a_missing_scene(tmp_path, capsys):
     assert main(["diagnose", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "o")]) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_report_is_self_contained_and_the_residual_map_is_readable(stiff):
+    import meshio
+
+    _, out = stiff
+    page = (out / "report.html").read_text()
+    assert page.count("data:image/png;base64,") >= 5
+    assert "http://" not in page and "https://" not in page
+    m = meshio.read(out / "residual_map.vtu")
+    share = m.cell_data["residual_share"][0]
+    assert len(share) == len(m.cells_dict["tetra"])
+    np.testing.assert_allclose(share.sum(), 1.0, rtol=1e-9)

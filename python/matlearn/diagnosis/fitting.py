@@ -63,7 +63,7 @@ def linear_fit(J: np.ndarray, r0: np.ndarray, max_step: float = 3.0):
 
 
 def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, step=0.07,
-           progress=None, target=None, recs=None) -> Fit:
+           progress=None, target=None, recs=None, r_zero=None) -> Fit:
     """Levenberg-Marquardt over the joint parameters of `names` on simulated residuals (minus
     `target`, a residual vector to match instead of the observations, if given)."""
     def res(params):
@@ -80,6 +80,9 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
     r = res(unpack(x)) if r_start is None else r_start
     evals = 0 if r_start is not None else 1
     cost = float(r @ r)
+    if r_zero is not None and cost > float(r_zero @ r_zero):
+        # the cheap (linearised) start is worse than the baseline: start from the baseline
+        x, r, cost = np.zeros_like(x), r_zero, float(r_zero @ r_zero)
     hist = [cost]
     mu = 1e-3
     for it in range(iterations):

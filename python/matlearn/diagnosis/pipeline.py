@@ -133,7 +133,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 8
     fits = {}
     for name in [n for n in order if n != "density"][:refine_top]:
         fits[name] = fitting.refine(P, ctx, [name], {name: cheap[name][0]}, iterations=2,
-                                    progress=say)
+                                    progress=say, r_zero=r0)
     if "stiffness_scale" in fits:
         f = fits["stiffness_scale"]
         fits["density"] = fitting.Fit("density", {"density": -f.params["stiffness_scale"]}, f.rss,
