@@ -1,0 +1,67 @@
+"""Baseline: Wang et al. 2015-style parameter identification. Fit Young's modulus E, Poisson
+ratio nu and the Rayleigh coefficients alpha_mass, alpha_stiffness of a standard law
+(co-rotated or neo-Hookean) by nonlinear least squares on forward-simulated marker trajectories
+of the train recordings (scipy.optimize.least_squares, finite-difference Jacobian; E and the
+alphas in log space, nu bounded to [0, 0.49])."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..embedding import embed_points
+from ..materials import Damping, Material
+from ..replay import interpolate_frames, score, simulate_recording
+
+
+def _unpack(p, base: Material, law: str):
+    E, nu, aM, aK = np.exp(p[0]), p[1], np.exp(p[2]), np.exp(p[3])
+    mat = Material(law, float(E), float(nu), base.density)
+    return mat, Damping(float(aM), float(aK))
+
+
+def fit_parameters(scene, law: str = "corotated", max_evaluations: int = 40, log=None) -> dict:
+    """Returns dict(material, damping, train_max_error_pct, evaluations)."""
+    recs = [r for r in scene.recordings_with_role("train") if r.num_markers > 0]
+    if not recs:
+        raise ValueError("baseline: the scene has no train recording with markers")
+    embs = [embed_points(scene.mesh, r.marker_rest) for r in recs]
+    size = scene.object_size
+    m0, d0 = scene.material, scene.damping
+    nu0 = float(np.mean(m0.poisson_ratio))
+    p0 = np.array([np.log(float(np.mean(m0.youngs_modulus))), min(nu0, 0.48),
+                   np.log(max(d0.alpha_mass, 1e-3)), np.log(max(d0.alpha_stiffness, 1e-4))])
+    lo = np.array([p0[0] - 5, 0.0, np.log(1e-6), np.log(1e-7)])
+    hi = np.array([p0[0] + 5, 0.49, np.log(1e3), np.log(1.0)])
+    count = [0]
+    big = 100.0  # % of size per sample when a simulation fails
+
+    def residual(p):
+        count[0] += 1
+        mat, damp = _unpack(p, m0, law)
+        model = scene.model(material=mat, damping=damp)
+        out = []
+        for rec, emb in zip(recs, embs):
+            seen = rec.seen
+            try:
+                sim = simulate_recording(scene, model, rec)
+                P = interpolate_frames(sim[0], emb.apply(sim[1]), rec.times)
+                out.append(((P - rec.markers)[seen] / size * 100.0).ravel())
+            except RuntimeError:
+                out.append(np.full(3 * int(seen.sum()), big))
+        r = np.concatenate(out)
+        if log:
+            log(f"  baseline eval {count[0]}: E={np.exp(p[0]):.4g} nu={p[1]:.3f} "
+                f"aM={np.exp(p[2]):.3g} aK={np.exp(p[3]):.3g} rms={np.sqrt(np.mean(r**2)):.3f}%")
+        return r
+
+    sol = least_squares(residual, np.clip(p0, lo + 1e-9, hi - 1e-9), bounds=(lo, hi),
+                        max_nfev=max_evaluations, diff_step=1e-3, x_scale=[1.0, 0.05, 1.0, 1.0])
+    mat, damp = _unpack(sol.x, m0, law)
+    return {"material": mat, "damping": damp, "evaluations": count[0],
+            "train_rms_pct": float(np.sqrt(np.mean(sol.fun**2)))}
+
+
+def baseline_test_errors(scene, fit: dict) -> list[float]:
+    """Max error (% of size) per test recording of the fitted-parameter model."""
+    model = scene.model(material=fit["material"], damping=fit["damping"])
+    return [r["max_error_pct"] for r in score(scene, model, "test")["recordings"]]
