@@ -68,9 +68,14 @@ def dominant_omega(problem) -> float:
 
 
 def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 8,
-             refine_top: int = 3, report: bool = True, residual_forces=None) -> dict:
+             refine_top: int = 3, report: bool = True, residual_source: str = "constrained") -> dict:
     """Diagnose the scene's nominal model against its train recordings; write
-    out_dir/diagnosis.json (formats.md), report.html and residual .vtu files; return the dict."""
+    out_dir/diagnosis.json (formats.md), report.html and residual .vtu files; return the dict.
+
+    residual_source: where the "where" control forces come from: "constrained" (a simulation
+    prescribing the marker-nearest vertices; cheap) or "spacetime" (the learning step's reduced
+    space-time optimisation; full-space forces, ~5x the cost). patches: spatial patches whose
+    stiffness sensitivities locate a heterogeneity; refine_top: families refined by simulation."""
     say = _printer(progress)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -81,7 +86,8 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 8
     say(f"scene: {scene.mesh.num_tets} tets, {len(P.train)} train / {len(P.test)} test recordings")
 
     # ---- where
-    fields = [where.constrained_residual(P, nominal, rec) for rec in P.train]
+    got = [where.residual_field(P, nominal, rec, residual_source) for rec in P.train]
+    fields = [g[0] for g in got]
     field = where.merge(fields)
     shares = where.element_shares(field)
     regions = where.find_regions(scene.mesh, shares, seed=seed)
@@ -197,6 +203,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 8
                   "significant": bool(significant)},
         "held_out": bool(P.test),
         "simulations": P.simulations,
+        "residual_source": got[0][1],
     }
     with open(out / "diagnosis.json", "w") as f:
         json.dump(result, f, indent=1)

@@ -103,6 +103,51 @@ def constrained_residual(problem, model, rec, max_frames: int = 30) -> ResidualF
                          np.asarray(scene.mesh.rest_volumes))
 
 
+def spacetime_residual(problem, model, rec, max_frames: int = 30, modes: int = 24,
+                       lam: float = 1.0, iterations: int = 4) -> ResidualField:
+    """Control forces from the learning step's sparse reduced space-time optimisation
+    (matlearn.learning, method.md section 5): full-space forces on every vertex, not only on
+    the marker-nearest ones, so the element map is sharper."""
+    from ..learning.initial import initial_trajectory
+    from ..learning.pod import pod_basis
+    from ..learning.spacetime import build_problem, constrained_vertices, solve_spacetime
+
+    scene = problem.scene
+    emb = problem.embedding(rec)
+    _, X0, _ = initial_trajectory(scene, model, rec, emb)
+    _, (sim_t, Xs, _) = problem.predict(model, rec, fast=True, full=True)
+    cons, _, _ = constrained_vertices(scene, rec)
+    phi = pod_basis([Xs, X0], np.asarray(scene.mesh.vertices, float), cons, modes)
+    setup = build_problem(scene, model, rec, phi, lam, emb)
+    out = solve_spacetime(setup, X0, iterations=iterations)
+    fc = np.asarray(out["control_forces"])  # frames 2..N
+    X, Vel = out["X"], out["V"]
+    idx = np.unique(np.linspace(0, len(fc) - 1, min(max_frames, len(fc))).astype(int))
+    DP, FH, FHD = [], [], []
+    for i in idx:  # a few sampled frames, each one C++ evaluation
+        B = model.force_map(X[i + 2])
+        dp = spla.lsqr(B, fc[i].ravel(), damp=1e-6 * _scale(B), atol=1e-8, btol=1e-8, iter_lim=400)[0]
+        Fh, Fhd, _, _ = model.principal_kinematics(X[i + 2], Vel[i + 2])
+        DP.append(dp.reshape(-1, 3))
+        FH.append(np.asarray(Fh))
+        FHD.append(np.asarray(Fhd))
+    return ResidualField(setup.times[idx + 2], fc[idx], np.array(DP), np.array(FH), np.array(FHD),
+                         Vel[idx + 2], np.asarray(scene.mesh.rest_volumes))
+
+
+def residual_field(problem, model, rec, source: str = "spacetime") -> tuple[ResidualField, str]:
+    """Control forces from `source` ("spacetime" or "constrained"); space-time falls back to the
+    constrained simulation if it fails. Returns (field, source used)."""
+    if source not in ("spacetime", "constrained"):
+        raise ValueError(f"residual source must be 'spacetime' or 'constrained', got {source!r}")
+    if source == "spacetime":
+        try:
+            return spacetime_residual(problem, model, rec), "spacetime"
+        except (ImportError, RuntimeError, ValueError, AttributeError):
+            pass
+    return constrained_residual(problem, model, rec), "constrained"
+
+
 def _scale(B) -> float:
     return float(np.sqrt(abs(B).power(2).sum() / max(B.shape[1], 1)))
 
