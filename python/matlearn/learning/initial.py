@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..embedding import embed_points
-from ..replay import drive_vertices, initial_state, interpolate_frames, simulation_times
+from ..replay import drive_vertices, interpolate_frames, simulation_times
 
 
 def fill_marker_gaps(times: np.ndarray, markers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -52,7 +52,9 @@ def initial_trajectory(scene, model, rec, embedding=None, progress=None) -> tupl
     idx = np.concatenate([uniq, didx]).astype(np.int64)
     tpos = np.concatenate([targets, dtargets], axis=1)
     steps_t = interpolate_frames(rec.times, tpos, sim_t)  # (S+1, k, 3)
-    x0, v0 = initial_state(scene, model, rec, emb)
+    from .loop import robust_initial_state
+
+    x0, v0 = robust_initial_state(scene, model, rec, emb)
     x0 = np.array(x0, float)
     x0[idx] = steps_t[0]
     integ = scene.integrator(model)

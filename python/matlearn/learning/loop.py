@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..embedding import embed_points
-from ..replay import interpolate_frames, simulate_recording
+from ..replay import initial_state, interpolate_frames, simulate_recording
 from .fit import FitFrames, RbfParams, fit_correction
 from .initial import initial_trajectory
 from .pod import pod_basis
@@ -56,12 +56,21 @@ class LearnOptions:
             raise ValueError(f"lambda must be > 0, got {self.lam}")
 
 
+def robust_initial_state(scene, model, rec, emb):
+    """replay.initial_state, retried without its marker-misfit refinement when that static
+    solve fails (a strongly corrected model can make the refined held pose unreachable)."""
+    try:
+        return initial_state(scene, model, rec, emb)
+    except RuntimeError:
+        return initial_state(scene, model, rec, emb, refine=0)
+
+
 def _errors(scene, model, recs, embs):
     """Per-recording marker errors (arrays of seen-sample errors, % of size) and simulations."""
     out, sims = [], []
     size = scene.object_size
     for rec, emb in zip(recs, embs):
-        sim = simulate_recording(scene, model, rec)
+        sim = simulate_recording(scene, model, rec, state=robust_initial_state(scene, model, rec, emb))
         P = interpolate_frames(sim[0], emb.apply(sim[1]), rec.times)
         seen = rec.seen
         out.append(100.0 * np.linalg.norm(P - rec.markers, axis=2)[seen] / size)
@@ -178,13 +187,23 @@ class Learner:
                 self.log(f"resuming at iteration {start}")
         best = {"train": np.inf, "cf": np.inf, "stale": 0}
         for m in self.metrics:  # replay the stopping state of resumed iterations
-            self._update_best(best, m)
+            if m.get("train"):
+                self._update_best(best, m)
         k = start
         while True:
             t0 = time.time()
             model = self.scene.model(params.correction() if params is not None else None)
-            tr_err, sims = _errors(self.scene, model, self.train, self.emb_train)
-            te_err, _ = _errors(self.scene, model, self.test, self.emb_test)
+            try:
+                tr_err, sims = _errors(self.scene, model, self.train, self.emb_train)
+                te_err, _ = _errors(self.scene, model, self.test, self.emb_test)
+            except RuntimeError as err:
+                if params is None:
+                    raise
+                # The new correction cannot be simulated (divergence): keep the best so far.
+                self.log(f"iteration {k}: forward simulation failed ({err}); stopping")
+                self.metrics.append({"iteration": k, "failed": str(err), "train": None, "test": None})
+                self._write_metrics()
+                break
             m = {"iteration": k, "train": _summary(tr_err), "test": _summary(te_err),
                  "has_correction": params is not None}
             for i, e in enumerate(tr_err):
@@ -228,7 +247,7 @@ class Learner:
 
     def finish(self) -> dict:
         """Pick the evaluated iterate with the lowest train error; return the summary."""
-        best = min(self.metrics, key=lambda m: m["train"]["max_error_pct"])
+        best = min((m for m in self.metrics if m.get("train")), key=lambda m: m["train"]["max_error_pct"])
         k = best["iteration"]
         params = None
         if k > 0:

@@ -12,6 +12,7 @@ def plot_convergence(metrics: list, path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    metrics = [m for m in metrics if m.get("train")]
     its = [m["iteration"] for m in metrics]
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     for role, style in (("train", "-o"), ("test", "-s")):

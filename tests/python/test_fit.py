@@ -1,0 +1,125 @@
+"""RBF correction fit (learning/fit.py) and passivity of the learned damping."""
+import numpy as np
+import pytest
+
+from matlearn import _core, meshes
+from matlearn.learning.fit import FitFrames, RbfParams, fit_correction, rbf_kernel
+from matlearn.materials import Damping, Material
+from matlearn.scene import Scene
+
+
+def _scene(material, damping=None):
+    mesh = meshes.bar(0.08, 0.02, 0.02, cells=(4, 1, 1))
+    V = np.asarray(mesh.vertices)
+    return Scene(mesh=mesh, material=material, damping=damping or Damping(0.0, 0.0),
+                 fixed=np.flatnonzero(V[:, 0] < 1e-9), time_step=1e-3)
+
+
+def _frames(sc, model, steps=150):
+    """A release from a tip-loaded pose (large bending, 20 %-ish stretches)."""
+    n = sc.mesh.num_vertices
+    V = np.asarray(sc.mesh.vertices)
+    integ = sc.integrator(model)
+    f = np.zeros((n, 3))
+    tip = V[:, 0] > 0.079
+    f[tip, 1] = 0.6 / tip.sum()
+    integ.set_state(V, np.zeros((n, 3)))
+    integ.static_solve(f, load_steps=4)
+    X, Vel = integ.simulate(steps, np.zeros((n, 3)), 1)
+    return X[1::3], Vel[1::3]
+
+
+def test_rbf_fit_reproduces_analytic_stress_correction_from_exact_forces():
+    # Truth = nominal co-rotated + an analytic principal-stress correction dP_i = a (s_i - 1)^2
+    # (zero at rest); the "control forces" are the exact force differences.
+    a = 2e6
+    nominal_sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
+    nominal = nominal_sc.model()
+
+    def analytic(Fh, Fhdot):
+        Fh = np.asarray(Fh)
+        J = np.zeros((len(Fh), 3, 3))
+        J[:, [0, 1, 2], [0, 1, 2]] = 2 * a * (Fh - 1)
+        return a * (Fh - 1) ** 2, J, None, None
+
+    truth = nominal_sc.model(_core.correction.PythonCorrection(analytic))
+    X, Vel = _frames(nominal_sc, truth)
+    fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    frames = FitFrames(X, Vel, fc, phi=None, constrained=nominal_sc.fixed)
+    params, info = fit_correction(nominal, [frames], num_centers=24, damping=False, ridge=1e-10)
+    Fh = np.concatenate([np.asarray(nominal.principal_kinematics(x, v)[0]) for x, v in zip(X, Vel)])
+    got = np.asarray(params.correction().evaluate(Fh, np.zeros_like(Fh))[0])
+    want = a * (Fh - 1) ** 2
+    span = np.abs(want).max()
+    assert span > 1e3  # the motion really exercises the correction
+    # Stated tolerance: max error 3 %, rms error 0.5 % of the correction's range over the
+    # sampled stretches (the tail of the stretch distribution is sampled sparsely).
+    assert np.abs(got - want).max() < 0.03 * span, (np.abs(got - want).max(), span)
+    assert np.sqrt(np.mean((got - want) ** 2)) < 0.005 * span
+    assert info["residual_ratio"] < 0.05
+    # Zero at rest by construction.
+    np.testing.assert_allclose(params.correction().evaluate(np.ones((1, 3)), np.zeros((1, 3)))[0], 0, atol=1e-6 * span)
+
+
+def test_fit_recovers_strain_dependent_damping():
+    # Truth alpha_K(s1) = 0.01 + 0.2 (s1 - 1); nominal alpha_K = 0.01: the fitted dalpha should
+    # follow 0.2 (s1 - 1) on the sampled stretches.
+    mat = Material("corotated", 3e5, 0.3, 1000.0)
+    nominal_sc = _scene(mat, Damping(0.0, 0.01))
+    truth_sc = _scene(mat, Damping(0.0, 0.01, stiffness_poly=[0.2]))
+    nominal, truth = nominal_sc.model(), truth_sc.model()
+    X, Vel = _frames(nominal_sc, truth)
+    fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    params, _ = fit_correction(nominal, [FitFrames(X, Vel, fc, None, nominal_sc.fixed)], num_centers=16,
+                               damping=True, ridge=1e-10)
+    Fh = np.concatenate([np.asarray(nominal.principal_kinematics(x, v)[0]) for x, v in zip(X, Vel)])
+    got = np.asarray(params.correction().evaluate(Fh, np.zeros_like(Fh))[3])
+    want = np.maximum(0.01 + 0.2 * (Fh[:, 0] - 1), 0) - 0.01
+    assert np.abs(want).max() > 3e-3
+    # Stated tolerance: max 15 %, rms 2 % of the largest alpha change (elastic part ~0 too).
+    assert np.abs(got - want).max() < 0.15 * np.abs(want).max()
+    assert np.sqrt(np.mean((got - want) ** 2)) < 0.02 * np.abs(want).max()
+
+
+def _energy(sc, model, x, v):
+    mu, lam = sc.material.lame(sc.mesh.num_tets)
+    Fh = np.asarray(model.principal_kinematics(x, v)[0])
+    psi = np.asarray(_core.fem.principal_energy(sc.material.model, Fh, mu, lam, []))
+    m = np.asarray(model.vertex_mass)
+    return float(psi @ np.asarray(sc.mesh.rest_volumes) + 0.5 * (m * (v**2).sum(1)).sum())
+
+
+def test_learned_damping_is_passive_energy_never_increases():
+    # A learned damping that is strongly negative in places (alpha_bias -1 s): the C++ clamps
+    # alpha_K + dalpha at 0, so an unforced, undriven, gravity-free simulation never gains energy.
+    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0), Damping(0.0, 0.002))
+    rng = np.random.default_rng(0)
+    C = 1 + 0.2 * rng.standard_normal((6, 3))
+    params = RbfParams(C, np.zeros((6, 3)), alpha_weights=rng.normal(0, 1.0, 6), alpha_bias=-1.0, epsilon=0.1)
+    model = sc.model(params.correction())
+    dal = np.asarray(params.correction().evaluate(C, np.zeros_like(C))[3])
+    assert dal.min() < -0.01 and dal.max() > -1  # really negative somewhere
+    n = sc.mesh.num_vertices
+    V = np.asarray(sc.mesh.vertices)
+    x0 = V.copy()
+    x0[:, 1] += 0.05 * (V[:, 0] / 0.08) ** 2  # bent initial pose, at rest
+    x0[sc.fixed] = V[sc.fixed]
+    integ = _core.time.Integrator(model, sc.fixed, 1e-3, np.zeros(3), 30, 1e-12)
+    integ.set_state(x0, np.zeros((n, 3)))
+    X, Vel = integ.simulate(200, np.zeros((n, 3)), 1)
+    E = np.array([_energy(sc, model, x, v) for x, v in zip(X, Vel)])
+    assert E[0] > 0
+    assert np.all(np.diff(E) <= 1e-9 * E[0]), np.diff(E).max()
+    assert E[-1] < 0.9 * E[0]
+
+
+def test_rbf_kernel_and_params_roundtrip():
+    C = np.array([[1.0, 1.0, 1.0], [1.1, 0.9, 1.0]])
+    K = rbf_kernel(np.array([[1.0, 1.0, 1.0]]), C, 0.1)
+    np.testing.assert_allclose(K, [[0.1, np.sqrt(0.02 + 0.01)]])
+    p = RbfParams(C, np.ones((2, 3)), alpha_weights=np.ones(2), alpha_bias=0.5, epsilon=0.1)
+    q = RbfParams.from_arrays(p.to_arrays())
+    np.testing.assert_array_equal(q.centers, p.centers)
+    assert q.alpha_bias == 0.5
+    with pytest.raises(ValueError):
+        fit_correction(None, [])
