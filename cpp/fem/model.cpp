@@ -1,5 +1,8 @@
 #include "fem/model.hpp"
 
+#include <algorithm>
+#include <atomic>
+
 #include "fem/svd.hpp"
 
 namespace matlearn::fem {
@@ -244,40 +247,88 @@ VecX Model::forces(const MatX3& x, const MatX3& v) const {
   return gather_forces(st);
 }
 
-SpMat Model::force_map(const MatX3& x) const {
-  const int m = mesh_->num_tets();
-  MatX3 v = MatX3::Zero(x.rows(), 3);
-  ElementState st;
-  evaluate(x, v, 0, true, st);
-  const auto& T = mesh_->tets();
-  std::vector<Eigen::Triplet<double, int>> trip;
-  trip.reserve(size_t(m) * 36);
+namespace {
+
+/// A (nrows x per*#T) CSC matrix whose column per*e + k holds the 12 DOFs of tet e (rows
+/// sorted), filled directly without triplets: value(e, k, a) for local DOF a = 3 * corner + i.
+template <class Value>
+SpMat element_columns(const MatX4i& T, int nrows, int per, const Value& value) {
+  const int m = T.rows();
+  const long ncols = long(per) * m;
+  std::vector<int> outer(ncols + 1), inner(12 * ncols);
+  std::vector<double> vals(12 * ncols);
+  for (long c = 0; c <= ncols; ++c) outer[c] = int(12 * c);
+#pragma omp parallel for schedule(static) if (m >= kParallelMinTets)
   for (int e = 0; e < m; ++e) {
-    const Mat9x12 G = shape_gradient(e);
-    const double W = mesh_->volumes()[e];
-    for (int k = 0; k < 3; ++k) {
-      const Mat3 P = st.U[e].col(k) * st.V[e].col(k).transpose();
-      const Vec12 col = -W * G.transpose() * Eigen::Map<const Eigen::Matrix<double, 9, 1>>(P.data());
-      for (int a = 0; a < 12; ++a) trip.emplace_back(3 * T(e, a / 3) + a % 3, 3 * e + k, col[a]);
+    int order[4] = {0, 1, 2, 3};
+    std::sort(order, order + 4, [&](int a, int b) { return T(e, a) < T(e, b); });
+    for (int k = 0; k < per; ++k) {
+      const long base = 12 * (long(per) * e + k);
+      for (int r = 0; r < 4; ++r)
+        for (int i = 0; i < 3; ++i) {
+          inner[base + 3 * r + i] = 3 * T(e, order[r]) + i;
+          vals[base + 3 * r + i] = value(e, k, 3 * order[r] + i);
+        }
     }
   }
-  SpMat B(3 * x.rows(), 3 * m);
-  B.setFromTriplets(trip.begin(), trip.end());
-  return B;
+  return SpMat(Eigen::Map<const SpMat>(nrows, ncols, 12 * ncols, outer.data(), inner.data(),
+                                       vals.data()));
+}
+
+}  // namespace
+
+const SparseAssembler& Model::full_assembler() const {
+  auto a = std::atomic_load(&full_assembler_);
+  if (!a) {  // two threads may both build it; either result is the same
+    const int n = 3 * mesh_->num_vertices();
+    a = std::make_shared<const SparseAssembler>(mesh_->tets(), VecXi::LinSpaced(n, 0, n - 1), n,
+                                                false);
+    std::atomic_store(&full_assembler_, a);
+  }
+  return *a;
+}
+
+SpMat Model::stiffness_matrix(const MatX3& x, const MatX3& v, bool project_psd) const {
+  ElementState st;
+  evaluate(x, v, kStiffness, project_psd, st);
+  SpMat K;
+  full_assembler().assemble(st.K, 1.0, {}, 0.0, VecX(), 0.0, K);
+  return K;
+}
+
+SpMat Model::damping_matrix(const MatX3& x, const MatX3& v) const {
+  ElementState st;
+  evaluate(x, v, kDamping, true, st);
+  SpMat D;
+  full_assembler().assemble(st.D, 1.0, {}, 0.0, VecX(), 0.0, D);
+  return D;
+}
+
+SpMat Model::force_map(const MatX3& x) const {
+  check_state(x, "x");
+  const int m = mesh_->num_tets();
+  // Column 3e + k is the force of unit principal stress k: -W G^T vec(u_k v_k^T), i.e.
+  // -W (Bm v_k)[a-1] u_k on corner a >= 1 and minus their sum on corner 0.
+  std::vector<Mat3> U(m), C(m);
+#pragma omp parallel for schedule(static) if (m >= kParallelMinTets)
+  for (int e = 0; e < m; ++e) {
+    Mat3 V;
+    Vec3 s;
+    rotation_variant_svd(mesh_->deformation_gradient(x, e), U[e], s, V);
+    C[e] = -mesh_->volumes()[e] * mesh_->Bm()[e] * V;
+  }
+  return element_columns(mesh_->tets(), 3 * x.rows(), 3, [&](int e, int k, int a) {
+    const int corner = a / 3, i = a % 3;
+    const double w = corner == 0 ? -(C[e](0, k) + C[e](1, k) + C[e](2, k)) : C[e](corner - 1, k);
+    return w * U[e](i, k);
+  });
 }
 
 SpMat Model::stiffness_damping_map(const MatX3& x, const MatX3& v) const {
   ElementState st;
   evaluate(x, v, kNominalKv, true, st);
-  const auto& T = mesh_->tets();
-  const int m = mesh_->num_tets();
-  std::vector<Eigen::Triplet<double, int>> trip;
-  trip.reserve(size_t(m) * 12);
-  for (int e = 0; e < m; ++e)
-    for (int a = 0; a < 12; ++a) trip.emplace_back(3 * T(e, a / 3) + a % 3, e, -st.Kv[e][a]);
-  SpMat G(3 * x.rows(), m);
-  G.setFromTriplets(trip.begin(), trip.end());
-  return G;
+  return element_columns(mesh_->tets(), 3 * x.rows(), 1,
+                         [&](int e, int, int a) { return -st.Kv[e][a]; });
 }
 
 SpMat Model::mass_damping_map(const MatX3& v) const {

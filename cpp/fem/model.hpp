@@ -5,6 +5,7 @@
 #include "common/types.hpp"
 #include "correction/correction.hpp"
 #include "fem/material.hpp"
+#include "fem/sparse_assembler.hpp"
 #include "fem/tet_mesh.hpp"
 
 namespace matlearn::fem {
@@ -66,6 +67,10 @@ class Model {
   VecX forces(const MatX3& x, const MatX3& v) const;
   /// Scatter element forces into a global vector.
   VecX gather_forces(const ElementState& st) const;
+  /// Assembled tangent stiffness K = -df/dx (3#V x 3#V) at (x, v).
+  SpMat stiffness_matrix(const MatX3& x, const MatX3& v, bool project_psd) const;
+  /// Assembled damping matrix D = -df/dv (3#V x 3#V) at (x, v).
+  SpMat damping_matrix(const MatX3& x, const MatX3& v) const;
   /// Force map B (3#V x 3#T): f_elastic = B ph for principal stresses ph, at positions x.
   SpMat force_map(const MatX3& x) const;
   /// Stiffness-damping map (3#V x #T): column e = -K_nominal,e v_e (force per unit alpha_K).
@@ -79,6 +84,9 @@ class Model {
 
  private:
   double damping_alpha(double base, const std::vector<double>& poly, double s1) const;
+  /// Scatter pattern of the full 3#V x 3#V operators, built on first use and shared by copies.
+  const SparseAssembler& full_assembler() const;
+  mutable std::shared_ptr<const SparseAssembler> full_assembler_;
 
   std::shared_ptr<const TetMesh> mesh_;
   MaterialModel material_;

@@ -185,16 +185,8 @@ void define_fem(py::module_& m) {
            [](const Model& M, const py::array& x, const py::array& v, bool project_psd) {
              const long n = M.mesh().num_vertices();
              const MatX3 X = as_matrix<3>(x, "x", n), Vv = as_matrix<3>(v, "v", n);
-             fem::ElementState st;
-             SpMat K;
-             {
-               py::gil_scoped_release r;
-               M.evaluate(X, Vv, fem::kStiffness, project_psd, st);
-               VecXi map = VecXi::LinSpaced(3 * n, 0, 3 * n - 1);
-               fem::SparseAssembler a(M.mesh().tets(), map, 3 * n, false);
-               a.assemble(st.K, 1.0, {}, 0.0, VecX(), 0.0, K);
-             }
-             return K;
+             py::gil_scoped_release r;
+             return M.stiffness_matrix(X, Vv, project_psd);
            },
            py::arg("x"), py::arg("v"), py::arg("project_psd") = false,
            "Tangent stiffness K = -df/dx (3#V x 3#V, scipy CSC).")
@@ -202,16 +194,8 @@ void define_fem(py::module_& m) {
            [](const Model& M, const py::array& x, const py::array& v) {
              const long n = M.mesh().num_vertices();
              const MatX3 X = as_matrix<3>(x, "x", n), Vv = as_matrix<3>(v, "v", n);
-             fem::ElementState st;
-             SpMat D;
-             {
-               py::gil_scoped_release r;
-               M.evaluate(X, Vv, fem::kDamping, true, st);
-               VecXi map = VecXi::LinSpaced(3 * n, 0, 3 * n - 1);
-               fem::SparseAssembler a(M.mesh().tets(), map, 3 * n, false);
-               a.assemble(st.D, 1.0, {}, 0.0, VecX(), 0.0, D);
-             }
-             return D;
+             py::gil_scoped_release r;
+             return M.damping_matrix(X, Vv);
            },
            py::arg("x"), py::arg("v"), "Damping matrix D = -df/dv (3#V x 3#V, scipy CSC).")
       .def("force_map",
