@@ -147,11 +147,11 @@ def build_case(work: Path, name: str, spec: dict, seed: int, reuse: bool = True)
               [0.12, [0, 0, 0]], [0.15, [0, 0.004, 0]], [0.18, [0, 0, 0]]]
         motions = [Motion("drive", "train", dur, drive={"box": tip, "keyframes": kf}),
                    Motion("drive", "train", dur, drive={"box": tip, "keyframes": [[t, [0, 0, d[1]]] for t, d in kf]}),
-                   Motion("release", "test", dur, load={"box": tip, "force": [0, -f, 0.5 * f]})]
+                   Motion("release", "test", dur, load={"box": tip, "force": [0, -f, 0.5 * f]}, load_steps=12)]
     else:
-        motions = [Motion("release", "train", dur, load={"box": tip, "force": [0, -f, 0.4 * f]}),
-                   Motion("release", "train", dur, twist={"box": tip, "torque": [0.04 * f, 0, 0]}),
-                   Motion("release", "test", dur, load={"box": tip, "force": [0.3 * f, 0.8 * f, -f]})]
+        motions = [Motion("release", "train", dur, load={"box": tip, "force": [0, -f, 0.4 * f]}, load_steps=12),
+                   Motion("release", "train", dur, twist={"box": tip, "torque": [0.03 * f, 0, 0]}, load_steps=12),
+                   Motion("release", "test", dur, load={"box": tip, "force": [0.3 * f, 0.8 * f, -f]}, load_steps=12)]
     nominal = Material("corotated", E0, nu0, RHO)
     if reuse and (work / name / "scene.toml").exists():
         return work / name / "scene.toml", region_model
@@ -192,12 +192,13 @@ def score_case(name, spec, result, region_model, wall):
 def totals(rows):
     eff = [r for r in rows if r["true_effects"]]
     ctrl = [r for r in rows if not r["true_effects"]]
-    shrink = [1 - r["gap_after_pct"] / r["gap_before_pct"] for r in eff if r["gap_before_pct"] > 0]
+    shrink = [1 - r["gap_after_pct"] / r["gap_before_pct"] for r in eff if r["gap_before_pct"]]
     ious = [r["region_iou"] for r in rows if r["region_iou"] is not None]
     return {
         "cases": len(rows),
         "top1_accuracy": float(np.mean([r["top1_correct"] for r in eff])) if eff else None,
         "control_clean": all(r["verdict"] == [] for r in ctrl),
+        "failed_cases": [r["case"] for r in rows if r.get("error")],
         "mean_region_iou": float(np.mean(ious)) if ious else None,
         "median_gap_shrink": float(np.median(shrink)) if shrink else None,
         "total_wall_s": float(sum(r["wall_s"] for r in rows)),
@@ -225,10 +226,17 @@ def main(argv=None):
             print(f"{name}: cached", file=sys.stderr)
             continue
         print(f"== {name} ({i + 1}/{len(names)}): building truth", file=sys.stderr, flush=True)
-        path, region_model = build_case(work, name, spec, seed=100 + i, reuse=not args.fresh)
         t0 = time.time()
-        result = diagnose(path, work / name / "diagnosis", seed=0, report=(name in ("heterogeneity",)))
-        row = score_case(name, spec, result, region_model, time.time() - t0)
+        try:
+            path, region_model = build_case(work, name, spec, seed=100 + i, reuse=not args.fresh)
+            t0 = time.time()
+            result = diagnose(path, work / name / "diagnosis", seed=0,
+                              report=(name in ("heterogeneity",)))
+            row = score_case(name, spec, result, region_model, time.time() - t0)
+        except (RuntimeError, ValueError) as err:  # a failed case is reported, not hidden
+            row = {"case": name, "true_effects": spec["effects"], "verdict": None,
+                   "top1_correct": False, "region_iou": None, "gap_before_pct": None,
+                   "gap_after_pct": None, "wall_s": time.time() - t0, "error": str(err)}
         cache.write_text(json.dumps(row))
         rows.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
@@ -239,6 +247,9 @@ def main(argv=None):
         res.write_text(json.dumps(out, indent=1))
     print(f"{'case':32s} {'true':40s} {'verdict':40s} top1 iou   before after  wall")
     for r in rows:
+        if r.get("error"):
+            print(f"{r['case']:32s} FAILED: {r['error']}")
+            continue
         iou_s = "-" if r["region_iou"] is None else f"{r['region_iou']:.2f}"
         print(f"{r['case']:32s} {','.join(r['true_effects']):40s} {','.join(r['verdict']):40s} "
               f"{'yes' if r['top1_correct'] else 'no ':4s} {iou_s:5s} {r['gap_before_pct']:6.2f} "

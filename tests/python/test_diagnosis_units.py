@@ -47,9 +47,12 @@ def test_stiffness_and_region_families_scale_elastic_forces_exactly():
     # a region scale acts on the region's element forces only: linear in the scale
     ctx.region = np.zeros(ctx.mesh.num_tets, bool)
     ctx.region[:5] = True
-    fa = np.asarray(build_model(ctx, {"heterogeneity": [np.log(2.0)]}).forces(x, v))
-    fb = np.asarray(build_model(ctx, {"heterogeneity": [np.log(3.0)]}).forces(x, v))
+    fa = np.asarray(build_model(ctx, {"heterogeneity": [np.log(2.0), 0.0]}).forces(x, v))
+    fb = np.asarray(build_model(ctx, {"heterogeneity": [np.log(3.0), 0.0]}).forces(x, v))
     np.testing.assert_allclose(fb - f0, 2.0 * (fa - f0), rtol=1e-9, atol=1e-12)
+    # region and rest scaled alike = a uniform scale
+    fu = np.asarray(build_model(ctx, {"heterogeneity": [np.log(1.7), np.log(1.7)]}).forces(x, v))
+    np.testing.assert_allclose(fu, f1, rtol=1e-10, atol=1e-12)
     # the clamp layer = elements touching a clamped vertex
     assert np.array_equal(ctx.clamp_layer, clamp_layer(ctx.mesh, ctx.fixed))
     assert 0 < ctx.clamp_layer.sum() < ctx.mesh.num_tets
@@ -116,8 +119,14 @@ def test_locate_region_picks_the_deviating_patches():
     Jp = rng.standard_normal((300, 8))
     truth = np.zeros(8)
     truth[[2, 5]] = -0.8
-    sel, th = fitting.locate_region(Jp, -Jp @ truth, np.arange(8))
+    sel, th = fitting.locate_region(Jp, -Jp @ truth)
     assert set(np.flatnonzero(sel)) == {2, 5}
+    # a uniform offset of the whole body on top does not move the located region
+    sel, th = fitting.locate_region(Jp, -Jp @ (truth + 0.3))
+    assert set(np.flatnonzero(sel)) == {2, 5}
+    # columns not allowed never join the region
+    sel, th = fitting.locate_region(Jp, -Jp @ truth, np.arange(8) != 5)
+    assert not sel[5]
 
 
 def test_score_prefers_fewer_parameters_at_equal_fit_and_ignores_gains_below_floor():

@@ -56,7 +56,8 @@ FAMILIES = {
         Family("compression_nonlinearity", ("c2", "c3"), 0, "stress polynomial for s < 1"),
         Family("rayleigh_damping", ("d_alpha_mass", "d_alpha_stiffness"), 0, "Rayleigh coefficients"),
         Family("strain_dependent_damping", ("c1", "c2"), 0, "alpha_K polynomial in s1 - 1"),
-        Family("heterogeneity", ("log_scale",), 1, "stiffness scale of a located region"),
+        Family("heterogeneity", ("log_scale_region", "log_scale_rest"), 1,
+               "stiffness of a located region relative to the rest of the body"),
         Family("density", ("log_scale",), 0, "uniform density scale"),
         Family("support_compliance", ("log_scale",), 0, "stiffness of the layer at the clamp"),
     )
@@ -142,7 +143,10 @@ def build_model(ctx: EffectContext, params: dict):
     if "stiffness_scale" in params:
         E *= np.exp(np.clip(th("stiffness_scale")[0], -3, 3))
     if "heterogeneity" in params and ctx.region is not None:
-        E[ctx.region] *= np.exp(np.clip(th("heterogeneity")[0], -4, 4))
+        t = th("heterogeneity")
+        E[ctx.region] *= np.exp(np.clip(t[0], -4, 4))
+        if len(t) > 1:
+            E[~ctx.region] *= np.exp(np.clip(t[1], -4, 4))
     if "support_compliance" in params:
         E[ctx.clamp_layer] *= np.exp(np.clip(th("support_compliance")[0], -5, 3))
     if "poisson_ratio" in params:
@@ -183,7 +187,11 @@ def describe(name: str, theta, ctx: EffectContext) -> dict:
         return {"scale": float(np.exp(tot - sign * ctx.offset_reference)),
                 "scale_range": sorted([float(np.exp(tot - sign * lo)), float(np.exp(tot - sign * hi))]),
                 "scale_on_model_mesh": float(np.exp(tot))}
-    if name in ("heterogeneity", "support_compliance"):
+    if name == "heterogeneity":
+        return {"scale": float(np.exp(t[0] - t[1])), "region_scale": float(np.exp(t[0])),
+                "rest_scale": float(np.exp(t[1])),
+                "region_tets": int(ctx.region.sum()) if ctx.region is not None else 0}
+    if name == "support_compliance":
         return {"scale": float(np.exp(t[0]))}
     if name == "poisson_ratio":
         nu0 = float(np.median(np.asarray(ctx.material.poisson_ratio, float)))

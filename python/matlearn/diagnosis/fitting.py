@@ -123,17 +123,21 @@ def score(rss: float, dof: int, n_eff: float, rss_floor: float) -> float:
     return float(n * np.log((rss + rss_floor) / n + 1e-300) + dof * np.log(n))
 
 
-def locate_region(J_patches: np.ndarray, r0: np.ndarray, patches: np.ndarray):
+def locate_region(J_patches: np.ndarray, r0: np.ndarray, allowed=None):
     """Per-patch log-stiffness change (ridge least squares on the patch sensitivities) and the
     region: patches deviating from the median change by more than half the largest deviation,
-    on the side of the largest deviation. Returns (region mask over patches, per-patch change)."""
-    th, _ = linear_fit(J_patches, r0, max_step=5.0)
+    on the side of the largest deviation (the median absorbs a uniform offset of the baseline).
+    `allowed`: bool per column that may belong to the region (default all).
+    Returns (region mask over columns, per-column change)."""
+    n = J_patches.shape[1]
+    allowed = np.ones(n, bool) if allowed is None else np.asarray(allowed, bool)
     JTJ = J_patches.T @ J_patches
     lam = 0.05 * np.trace(JTJ) / max(len(JTJ), 1)
     th = -np.linalg.solve(JTJ + lam * np.eye(len(JTJ)), J_patches.T @ r0)
     dev = th - np.median(th)
+    dev[~allowed] = 0.0
     i = int(np.argmax(np.abs(dev)))
-    sel = (np.sign(dev) == np.sign(dev[i])) & (np.abs(dev) >= 0.5 * np.abs(dev[i]))
+    sel = allowed & (np.sign(dev) == np.sign(dev[i])) & (np.abs(dev) >= 0.5 * np.abs(dev[i]))
     return sel, th
 
 

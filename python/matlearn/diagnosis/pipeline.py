@@ -122,10 +122,10 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 8
     Jp = np.zeros((len(r0), labels.max() + 1))
     for p in range(labels.max() + 1):
         ctx.region = labels == p
-        Jp[:, p] = (fitting.residual_of(P, ctx, {"heterogeneity": [0.1]}) - r0) / 0.1
-    sel, patch_theta = fitting.locate_region(Jp, r0, labels)
+        Jp[:, p] = (fitting.residual_of(P, ctx, {"heterogeneity": [0.1, 0.0]}) - r0) / 0.1
+    sel, patch_theta = fitting.locate_region(Jp, r0)
     ctx.region = np.isin(labels, np.flatnonzero(sel))
-    J["heterogeneity"] = Jp[:, sel].sum(axis=1, keepdims=True)
+    J["heterogeneity"] = np.stack([Jp[:, sel].sum(axis=1), Jp[:, ~sel].sum(axis=1)], axis=1)
     say(f"sensitivities done ({P.simulations} simulations); region {int(ctx.region.sum())} tets")
     cheap = {}
     for name, Jn in J.items():
