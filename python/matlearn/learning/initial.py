@@ -57,6 +57,11 @@ def initial_trajectory(scene, model, rec, embedding=None, progress=None) -> tupl
     x0, v0 = robust_initial_state(scene, model, rec, emb)
     x0 = np.array(x0, float)
     x0[idx] = steps_t[0]
+    if len(np.union1d(idx, np.asarray(scene.fixed))) == n:
+        # Every free vertex follows a marker or the drive: the trajectory is the targets.
+        X = np.repeat(V[None], len(sim_t), axis=0)
+        X[:, idx] = steps_t
+        return sim_t, X, idx
     integ = scene.integrator(model)
     integ.set_prescribed(idx)
     integ.set_state(x0, np.zeros((n, 3)))

@@ -58,11 +58,18 @@ class LearnOptions:
 
 def robust_initial_state(scene, model, rec, emb):
     """replay.initial_state, retried without its marker-misfit refinement when that static
-    solve fails (a strongly corrected model can make the refined held pose unreachable)."""
+    solve fails, and last with the nominal model's held pose (a learned correction can make
+    the static Newton solve of the held pose fail although dynamic steps, regularised by the
+    mass, are fine; the pose is then slightly inconsistent with the model, which the error
+    metric sees as a small initial transient)."""
     try:
         return initial_state(scene, model, rec, emb)
     except RuntimeError:
+        pass
+    try:
         return initial_state(scene, model, rec, emb, refine=0)
+    except RuntimeError:
+        return initial_state(scene, scene.model(), rec, emb)
 
 
 def _errors(scene, model, recs, embs):
@@ -84,6 +91,17 @@ def _summary(errs):
     allv = np.concatenate(errs)
     return {"max_error_pct": float(allv.max()), "rms_error_pct": float(np.sqrt(np.mean(allv**2))),
             "per_recording_max_pct": [float(e.max()) for e in errs]}
+
+
+def _blend(a: RbfParams | None, b: RbfParams, t: float) -> RbfParams:
+    """(1 - t) a + t b for corrections on the same centres (a None: the zero correction)."""
+    if a is None:
+        a = RbfParams(b.centers, np.zeros_like(b.weights), np.zeros((3, 3)), np.zeros(3),
+                      np.zeros_like(b.alpha_weights), 0.0, b.epsilon)
+    mix = lambda x, y: (1 - t) * np.asarray(x) + t * np.asarray(y)  # noqa: E731
+    return RbfParams(b.centers, mix(a.weights, b.weights), mix(a.linear, b.linear), mix(a.bias, b.bias),
+                     mix(a.alpha_weights, b.alpha_weights), float(mix(a.alpha_bias, b.alpha_bias)),
+                     b.epsilon)
 
 
 class Learner:
@@ -189,23 +207,39 @@ class Learner:
         for m in self.metrics:  # replay the stopping state of resumed iterations
             if m.get("train"):
                 self._update_best(best, m)
+        prev_params = None
+        if start > 1:
+            with np.load(self._ckpt(start - 2)) as z:
+                prev_params = RbfParams.from_arrays(z)
         k = start
         while True:
             t0 = time.time()
-            model = self.scene.model(params.correction() if params is not None else None)
-            try:
-                tr_err, sims = _errors(self.scene, model, self.train, self.emb_train)
-                te_err, _ = _errors(self.scene, model, self.test, self.emb_test)
-            except RuntimeError as err:
-                if params is None:
-                    raise
-                # The new correction cannot be simulated (divergence): keep the best so far.
-                self.log(f"iteration {k}: forward simulation failed ({err}); stopping")
-                self.metrics.append({"iteration": k, "failed": str(err), "train": None, "test": None})
+            evaluated = None
+            step = 1.0
+            for attempt in range(4 if params is not None else 1):
+                model = self.scene.model(params.correction() if params is not None else None)
+                try:
+                    tr_err, sims = _errors(self.scene, model, self.train, self.emb_train)
+                    te_err, _ = _errors(self.scene, model, self.test, self.emb_test)
+                    evaluated = True
+                    break
+                except RuntimeError as err:
+                    if params is None:
+                        raise
+                    # The new correction cannot be simulated (divergence): step back towards
+                    # the previous correction (same centres, so parameters blend linearly).
+                    self.log(f"iteration {k}: forward simulation failed ({err}); halving the update")
+                    evaluated = str(err)
+                    step *= 0.5
+                    params = _blend(prev_params, params, 0.5)
+            if evaluated is not True:
+                self.metrics.append({"iteration": k, "failed": evaluated, "train": None, "test": None})
                 self._write_metrics()
                 break
+            if step < 1.0:  # the blended correction is this iteration's result
+                self._save_checkpoint(k - 1, params, st_X)
             m = {"iteration": k, "train": _summary(tr_err), "test": _summary(te_err),
-                 "has_correction": params is not None}
+                 "has_correction": params is not None, "update_step": step}
             for i, e in enumerate(tr_err):
                 self.hist[f"it_{k}_train{i}"] = e
             for i, e in enumerate(te_err):
@@ -221,9 +255,11 @@ class Learner:
             frames, st_X, st_info = self._spacetime(model, sims, st_X, k)
             m["spacetime"] = st_info
             m["control_force_rms"] = float(np.sqrt(np.mean([s["control_force_rms"] ** 2 for s in st_info])))
+            prev_params = params
+            centers = (params.centers, params.epsilon) if params is not None else None
             params, finfo = fit_correction(self.nominal, frames, opt.centers, current_model=model
                                            if params is not None else None, damping=opt.damping,
-                                           ridge=opt.ridge, seed=opt.seed + k)
+                                           ridge=opt.ridge, seed=opt.seed + k, centers=centers)
             m["fit"] = finfo
             m["wall_s"] = time.time() - t0
             self.log(f"  control forces {m['control_force_rms']:.3e} N (reduced rms), fit residual "
