@@ -176,6 +176,14 @@ def test_make_scene_from_scans(tmp_path):
     err = np.linalg.norm(rec.markers - rec.marker_rest[None], axis=2)[seen]
     assert err.max() < 1e-3
     np.testing.assert_allclose(rec.marker_rest, Vs[np.unique(np.asarray(sc.mesh.surface_faces))])
+    # The same through the CLI (cloud scene only).
+    from matlearn import cli
+
+    rc = cli.main(["ingest", str(tmp_path / "bar.obj"), "--clouds", *map(str, dirs), "--fixed-box",
+                   "-1", "-1", "-1", "0.001", "1", "1", "--out", str(tmp_path / "cli"), "--max-volume",
+                   "2e-6", "--no-track", "--quiet"])
+    assert rc == 0
+    assert [r for _, r in load_scene(tmp_path / "cli" / "scene.toml").recordings] == ["train", "test"]
 
 
 def test_refresh_markers_moves_towards_clouds(bar_case):
