@@ -177,17 +177,18 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 8
                  "parameters": describe(name, theta, ctx), "simulated": fit is not None}
         if name in cumulative:
             entry["gap_after"] = cumulative[name]
-        elif fit is not None:
-            entry["gap_after"] = _safe_gap(P, ctx, fit.params, fast=True)
-        else:
-            entry["gap_after"] = None
+        else:  # not in the verdict: the effect alone (its refined or its linearised fit)
+            entry["gap_after"] = _safe_gap(P, ctx, fit.params if fit else {name: theta}, fast=True)
         if e["confounded_with"]:
             entry["confounded_with"] = e["confounded_with"]
         effects.append(entry)
     if hist is not None:
+        # outside the library: nothing can be added, the gap stays what the stateless effects leave
+        stateless = [cumulative[n] for n in verdict if n in cumulative and cumulative[n]]
         effects.append({"name": "history_dependence", "explained": hist["explained"],
                         "score": hist["score"], "parameters": hist["parameters"],
-                        "gap_after": None, "outside_library": True})
+                        "gap_after": stateless[-1] if stateless else dict(gap_before),
+                        "outside_library": True})
     if "heterogeneity" in verdict:
         het = where.region_entry(scene.mesh, np.flatnonzero(ctx.region), shares)
         regions = [het] + [r for r in regions if not set(r["elements"]) <= set(het["elements"])]
