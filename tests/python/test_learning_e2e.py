@@ -31,7 +31,7 @@ def case(tmp_path_factory):
 
 def test_learning_cuts_held_out_error_and_resume_is_identical(case, tmp_path):
     sc = load_scene(case)
-    opts = LearnOptions(iterations=2, modes=12, centers=12)
+    opts = LearnOptions(iterations=2, modes=12, centers=12, ridges=(1e-6,))
     full = learn(sc, tmp_path / "full", opts, log=None)
     nominal = full["nominal"]["test"]["max_error_pct"]
     learned = full["final"]["test"]["max_error_pct"]
@@ -46,7 +46,7 @@ def test_learning_cuts_held_out_error_and_resume_is_identical(case, tmp_path):
     pred = predict_markers(sc, model, rec, sim=simulate_recording(sc, model, rec, state=state))
     assert trajectory_error(pred, rec, sc.object_size)["max_error_pct"] == pytest.approx(learned, rel=1e-9)
     # Kill after the first iteration (simulated by a 1-iteration run), then resume to 2.
-    learn(sc, tmp_path / "part", LearnOptions(iterations=1, modes=12, centers=12), log=None)
+    learn(sc, tmp_path / "part", LearnOptions(iterations=1, modes=12, centers=12, ridges=(1e-6,)), log=None)
     resumed = learn(sc, tmp_path / "part", opts, resume=True, log=None)
     a = [m["train"]["max_error_pct"] for m in full["metrics"]]
     b = [m["train"]["max_error_pct"] for m in resumed["metrics"]]

@@ -33,9 +33,10 @@ class LearnOptions:
     """iterations: max outer iterations; lam: dimensionless observation weight; modes: POD
     modes r; centers: RBF centres; damping: learn the strain-dependent alpha_K change;
     gn_iterations: Gauss-Newton steps per space-time solve; pod_window: fraction of each
-    trajectory used for the basis; fit_frames: max frames per recording in the fit; ridge:
-    relative Tikhonov weight; patience: iterations without improvement before stopping;
-    seed: k-means seed."""
+    trajectory used for the basis; fit_frames: max frames per recording in the fit; ridges:
+    relative Tikhonov weights tried per iteration (the best train error wins); patience: iterations without improvement before stopping;
+    seed: k-means seed; backtrack: a new correction whose train error exceeds this factor times
+    the best so far is halved towards the previous one (at most twice)."""
 
     iterations: int = 8
     lam: float = 1.0
@@ -45,9 +46,10 @@ class LearnOptions:
     gn_iterations: int = 6
     pod_window: float = 1.0
     fit_frames: int = 150
-    ridge: float = 1e-6
+    ridges: tuple = (1e-6, 1e-4, 1e-2)
     patience: int = 2
     seed: int = 0
+    backtrack: float = 1.5
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
@@ -220,6 +222,14 @@ class Learner:
                 model = self.scene.model(params.correction() if params is not None else None)
                 try:
                     tr_err, sims = _errors(self.scene, model, self.train, self.emb_train)
+                    worse = max(e.max() for e in tr_err) > opt.backtrack * best["train"]
+                    if params is not None and worse and attempt < 2:
+                        # Much worse than the best iterate: the fit overshot; step back.
+                        self.log(f"iteration {k}: train error {max(e.max() for e in tr_err):.3f}% "
+                                 f"> {opt.backtrack} x best; halving the update")
+                        step *= 0.5
+                        params = _blend(prev_params, params, 0.5)
+                        continue
                     te_err, _ = _errors(self.scene, model, self.test, self.emb_test)
                     evaluated = True
                     break
@@ -257,18 +267,41 @@ class Learner:
             m["control_force_rms"] = float(np.sqrt(np.mean([s["control_force_rms"] ** 2 for s in st_info])))
             prev_params = params
             centers = (params.centers, params.epsilon) if params is not None else None
-            params, finfo = fit_correction(self.nominal, frames, opt.centers, current_model=model
-                                           if params is not None else None, damping=opt.damping,
-                                           ridge=opt.ridge, seed=opt.seed + k, centers=centers)
+            params, finfo = self._fit(frames, model if params is not None else None, centers, k)
             m["fit"] = finfo
             m["wall_s"] = time.time() - t0
             self.log(f"  control forces {m['control_force_rms']:.3e} N (reduced rms), fit residual "
-                     f"{finfo['residual_ratio']:.3f}, {m['wall_s']:.1f} s")
+                     f"{finfo['residual_ratio']:.3f} (ridge {finfo['ridge']:g}), {m['wall_s']:.1f} s")
             self.metrics.append(m)
             self._update_best(best, m)
             self._save_checkpoint(k, params, st_X)
             k += 1
         return self.finish()
+
+    def _fit(self, frames, current_model, centers, k):
+        """Fit one correction per ridge weight in options.ridges (same centres) and keep the one
+        whose forward simulation best matches the *train* recordings (model selection on
+        training data only)."""
+        opt = self.opt
+        cands = []
+        for ridge in opt.ridges:
+            p, info = fit_correction(self.nominal, frames, opt.centers, current_model=current_model,
+                                     damping=opt.damping, ridge=ridge, seed=opt.seed + k,
+                                     centers=centers)
+            centers = (p.centers, p.epsilon)
+            info["ridge"] = ridge
+            if len(opt.ridges) == 1:
+                return p, info
+            try:
+                err = max(e.max() for e in _errors(self.scene, self.scene.model(p.correction()),
+                                                   self.train, self.emb_train)[0])
+            except RuntimeError:
+                err = np.inf
+            info["train_max_error_pct"] = float(err)
+            cands.append((err, len(cands), p, info))
+        err, _, p, info = min(cands, key=lambda c: (c[0], c[1]))
+        info["ridge_candidates"] = [{"ridge": c[3]["ridge"], "train_max_error_pct": c[0]} for c in cands]
+        return p, info
 
     @staticmethod
     def _update_best(best, m):
