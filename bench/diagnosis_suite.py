@@ -54,9 +54,9 @@ class DamageCorrection:
             self.peak = np.zeros(len(Fh))
         self.peak = np.maximum(self.peak, np.abs(e).max(axis=1))
         d = np.minimum(self.dmax, self.k * self.peak)[:, None]
-        P = 2 * self.mu * e + self.lam * e.sum(axis=1, keepdims=True)
+        P = 2 * self.mu[:, None] * e + self.lam[:, None] * e.sum(axis=1, keepdims=True)
         J = np.zeros((len(Fh), 3, 3))
-        J[:] = -(self.lam * np.ones((3, 3)) + 2 * self.mu * np.eye(3))
+        J[:] = -(self.lam[:, None, None] * np.ones((3, 3)) + 2 * self.mu[:, None, None] * np.eye(3))
         return -d * P, d[:, :, None] * J, None, None
 
 
@@ -82,7 +82,7 @@ def case_specs():
     return {
         "control": dict(effects=[], L=0.14, cells=(8, 3, 3)),
         "stiffness_scale": dict(effects=["stiffness_scale"], L=0.15, cells=(8, 3, 3), E=1.4),
-        "poisson_ratio": dict(effects=["poisson_ratio"], L=0.13, W=0.03, H=0.04, cells=(8, 3, 3), nu=0.2),
+        "poisson_ratio": dict(effects=["poisson_ratio"], L=0.13, W=0.04, H=0.035, cells=(8, 3, 3), nu=0.25),
         "tension_nonlinearity": dict(effects=["tension_nonlinearity"], L=0.15, cells=(8, 3, 3),
                                      side=(1.0, 3.0, 40.0)),
         "compression_nonlinearity": dict(effects=["compression_nonlinearity"], L=0.14,
@@ -139,7 +139,7 @@ def build_case(work: Path, name: str, spec: dict, seed: int, reuse: bool = True)
         correction = _core.correction.PythonCorrection(DamageCorrection(mu, lam, k, dmax))
     tip = [[L - 0.2 * L, -1, -1], [1, 1, 1]]
     rng = np.random.default_rng(seed)
-    f = 1.5 * (1 + 0.3 * rng.random())
+    f = 1.5 * (1 + 0.3 * rng.random()) * spec.get("load", 0.5)
     dur = 0.2
     if "damage" in spec:
         # growing drive cycles: damage accumulates during the recording
@@ -159,6 +159,19 @@ def build_case(work: Path, name: str, spec: dict, seed: int, reuse: bool = True)
                      nominal_damping, [[-1, -1, -1], [1e-6, 1, 1]], motions,
                      marker_fraction=0.3, noise=2e-5, seed=seed, truth_correction=correction)
     return path, region_model
+
+
+def _commit() -> str:
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                             text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "python/matlearn/diagnosis"],
+                               cwd=ROOT.parent, capture_output=True, text=True).stdout.strip()
+        return out + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def iou(a, b) -> float:
@@ -237,6 +250,7 @@ def main(argv=None):
             row = {"case": name, "true_effects": spec["effects"], "verdict": None,
                    "top1_correct": False, "region_iou": None, "gap_before_pct": None,
                    "gap_after_pct": None, "wall_s": time.time() - t0, "error": str(err)}
+        row["commit"] = _commit()
         cache.write_text(json.dumps(row))
         rows.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)

@@ -55,7 +55,8 @@ FAMILIES = {
         Family("tension_nonlinearity", ("c2", "c3"), 0, "stress polynomial for s > 1"),
         Family("compression_nonlinearity", ("c2", "c3"), 0, "stress polynomial for s < 1"),
         Family("rayleigh_damping", ("d_alpha_mass", "d_alpha_stiffness"), 0, "Rayleigh coefficients"),
-        Family("strain_dependent_damping", ("c1", "c2"), 0, "alpha_K polynomial in s1 - 1"),
+        Family("strain_dependent_damping", ("d_alpha_stiffness", "c1", "c2"), 0,
+               "alpha_K as a quadratic in s1 - 1 (level, slope, curvature)"),
         Family("heterogeneity", ("log_scale_region", "log_scale_rest"), 1,
                "stiffness of a located region relative to the rest of the body"),
         Family("density", ("log_scale",), 0, "uniform density scale"),
@@ -159,9 +160,10 @@ def build_model(ctx: EffectContext, params: dict):
         aK = max(aK + t[1] * 0.1 / ctx.omega, 0.0)
     if "strain_dependent_damping" in params:
         t = th("strain_dependent_damping")
+        aK = max(aK + t[0] * 0.1 / ctx.omega, 0.0)
         kpoly = list(kpoly) + [0.0] * max(0, 2 - len(kpoly))
         for k in range(2):
-            kpoly[k] += t[k] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1)
+            kpoly[k] += t[k + 1] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1)
     if "tension_nonlinearity" in params:
         tension = th("tension_nonlinearity")
     if "compression_nonlinearity" in params:
@@ -202,10 +204,10 @@ def describe(name: str, theta, ctx: EffectContext) -> dict:
             "alpha_stiffness": max(ctx.damping.alpha_stiffness + t[1] * 0.1 / ctx.omega, 0.0),
         }
     if name == "strain_dependent_damping":
-        return {
-            f"alpha_stiffness_c{k + 1}": float(t[k] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1))
-            for k in range(2)
-        }
+        out = {"alpha_stiffness": max(ctx.damping.alpha_stiffness + t[0] * 0.1 / ctx.omega, 0.0)}
+        out.update({f"alpha_stiffness_c{k + 1}": float(t[k + 1] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1))
+                    for k in range(2)})
+        return out
     if name in ("tension_nonlinearity", "compression_nonlinearity"):
         E0 = float(np.median(np.asarray(ctx.material.youngs_modulus, float)))
         # stress added at a strain of d_ref, relative to the nominal E0 * d_ref
