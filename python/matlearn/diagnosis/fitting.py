@@ -117,6 +117,18 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
     return Fit("+".join(names), unpack(x), cost, dof, evals, hist)
 
 
+def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-0.6, -0.3, 0.3, 0.6)) -> np.ndarray:
+    """Best of the linearised estimate and a coarse grid of a 1-parameter family (simulated),
+    as the start of the local refinement."""
+    best = (float(r0 @ r0), np.zeros(1))
+    for t in [float(np.asarray(theta_cheap).ravel()[0])] + list(grid):
+        r = residual_of(problem, ctx, {name: [t]})
+        c = float(r @ r)
+        if c < best[0]:
+            best = (c, np.array([t]))
+    return best[1]
+
+
 def score(rss: float, dof: int, n_eff: float, rss_floor: float) -> float:
     """BIC on the residual above the floor: n log((rss + floor) / n) + dof log n (lower = better)."""
     n = max(n_eff, 2.0)

@@ -138,8 +138,11 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 8
     # ---- refinement by simulation
     fits = {}
     for name in [n for n in order if n != "density"][:refine_top]:
-        fits[name] = fitting.refine(P, ctx, [name], {name: cheap[name][0]}, iterations=2,
-                                    progress=say, r_zero=r0)
+        start = {name: cheap[name][0]}
+        if len(FAMILIES[name].parameters) == 1:
+            # oscillation phases make 1-parameter scale fits multimodal: scan before refining
+            start = {name: fitting.scan(P, ctx, name, cheap[name][0], r0)}
+        fits[name] = fitting.refine(P, ctx, [name], start, iterations=2, progress=say, r_zero=r0)
     if "stiffness_scale" in fits:
         f = fits["stiffness_scale"]
         fits["density"] = fitting.Fit("density", {"density": -f.params["stiffness_scale"]}, f.rss,
