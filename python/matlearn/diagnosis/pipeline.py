@@ -28,7 +28,7 @@ from .problem import Problem
 GAP_FACTOR = 2.5
 EXPLAINED_MIN = 0.5  # an effect must explain this fraction of the residual above the floor
 ADD_FACTOR = 0.6  # a further effect must cut (rss + floor) to this fraction
-TIE = 0.05  # fits explaining the same within this fraction of the explained part are confounded
+FLOOR_TIE = 1.5  # fits that both bring the residual down to ~the floor cannot be told apart
 PRIOR = ("stiffness_scale", "rayleigh_damping", "poisson_ratio", "tension_nonlinearity",
          "compression_nonlinearity", "strain_dependent_damping", "support_compliance",
          "heterogeneity", "density")  # tie-break order: the commoner modelling error first
@@ -137,7 +137,10 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 8
 
     # ---- refinement by simulation
     fits = {}
-    for name in [n for n in order if n != "density"][:refine_top]:
+    to_refine = [n for n in order if n != "density"][:refine_top]
+    if "stiffness_scale" not in to_refine:  # the commonest error; its linearisation is poorest
+        to_refine.append("stiffness_scale")
+    for name in to_refine:
         start = {name: cheap[name][0]}
         if len(FAMILIES[name].parameters) == 1:
             # oscillation phases make 1-parameter scale fits multimodal: scan before refining
@@ -246,8 +249,8 @@ def _rank(fits, cheap, order, n_eff, floor, rss0):
                      "explained": float(np.clip((rss0 - rss) / max(rss0, 1e-300), 0, 1))})
     for r in rows:
         r["confounded_with"] = []
-    # two simulated fits explain the data equally when their explained parts differ by less
-    # than TIE of the larger one or half the floor (differences below the floor are noise)
+    # two simulated fits explain the data equally when their residuals differ by less than half
+    # the floor, or when both reach the floor (what is left is noise and discretisation)
     sim = [r for r in rows if r["_fit"] is not None]
     for a in sim:
         for b in sim:
@@ -255,8 +258,9 @@ def _rank(fits, cheap, order, n_eff, floor, rss0):
                 continue
             ea, eb = rss0 - a["rss"], rss0 - b["rss"]
             big = max(ea, eb)
+            both_at_floor = max(a["rss"], b["rss"]) <= FLOOR_TIE * floor
             if (big > 0 and min(ea, eb) > 0 and a["rss"] < 0.5 * rss0
-                    and abs(ea - eb) <= max(TIE * big, 0.5 * floor)):
+                    and (abs(ea - eb) <= 0.5 * floor or both_at_floor)):
                 a["confounded_with"].append(b["name"])
     # rank: simulated fits first, by score; within a confounded group by the prior order (the
     # commoner, simpler modelling error first), so a tie is flagged instead of decided by noise
