@@ -3,5 +3,5 @@
 # so parallel developers do not race on the build directory.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PY=${PYTHON:-/work/venv/bin/python}
+PY=${PYTHON:-$( [ -x .venv/bin/python ] && echo .venv/bin/python || echo python3 )}
 exec flock /tmp/matlearn-build.lock "$PY" -m pip install --no-build-isolation -q -e . "$@"
