@@ -215,19 +215,25 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
   const MatX3 zero_v = MatX3::Zero(nv, 3);
   fem::ElementState st;
   const VecX empty;
+  double fint_norm = 0.0;
   auto residual = [&](const MatX3& x, double scale, VecX& r) {
     model_->evaluate(x, zero_v, fem::kForce | fem::kStiffness, true, st);
     const VecX f = model_->gather_forces(st);
     r.resize(n_free_);
+    fint_norm = 0.0;
     for (int d = 0; d < 3 * nv; ++d)
-      if (dof_map_[d] >= 0) r[dof_map_[d]] = f[d] + scale * fload[d];
+      if (dof_map_[d] >= 0) {
+        r[dof_map_[d]] = f[d] + scale * fload[d];
+        fint_norm += f[d] * f[d];
+      }
+    fint_norm = std::sqrt(fint_norm);
   };
   const double ref = fload.norm() + 1e-12;
   for (int ls = 1; ls <= load_steps; ++ls) {
     const double scale = double(ls) / load_steps;
     VecX r;
     residual(x_, scale, r);
-    int it = 0;
+    int it = 0, uphill = 0;
     for (; it < max_iterations; ++it) {
       if (r.norm() <= tol * ref) break;
       assembler_->assemble(st.K, 1.0, {}, 0.0, empty, 0.0, A_);
@@ -242,26 +248,46 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
       double t = 1.0, r0 = r.norm();
       bool decreased = false;
       MatX3 xt;
-      for (int bt = 0; bt < 20; ++bt) {
+      VecX rt;
+      for (int bt = 0; bt < 12; ++bt) {
         xt = x_;
         auto xd = as_dofs(xt);
         for (int d = 0; d < 3 * nv; ++d)
           if (dof_map_[d] >= 0) xd[d] += t * dx[dof_map_[d]];
-        residual(xt, scale, r);
-        if (r.allFinite() && r.norm() < r0) {
+        residual(xt, scale, rt);
+        if (rt.allFinite() && rt.norm() < r0) {
           decreased = true;
           break;
         }
         t *= 0.5;
       }
       if (!decreased) {
-        // No descent left: the residual is at its round-off floor (set by the internal forces,
-        // which can exceed a small load by orders of magnitude). Keep x; the check below
-        // decides whether that floor is an acceptable equilibrium.
-        residual(x_, scale, r);
-        break;
+        // At the round-off floor (set by the internal forces, which can exceed a small load by
+        // orders of magnitude) nothing decreases any more: stop, the check below judges it.
+        if (r0 <= 1e-10 * (fint_norm + ref)) {
+          residual(x_, scale, r);
+          break;
+        }
+        // Otherwise the PSD-projected tangent is not the exact one (large rotations, compressed
+        // fibres) and the residual norm may have to rise before it falls: take a short
+        // non-monotone step, a bounded number of times.
+        if (++uphill > 8) {
+          residual(x_, scale, r);
+          break;
+        }
+        xt = x_;
+        auto xd = as_dofs(xt);
+        for (int d = 0; d < 3 * nv; ++d)
+          if (dof_map_[d] >= 0) xd[d] += 0.25 * dx[dof_map_[d]];
+        residual(xt, scale, rt);
+        if (!rt.allFinite()) {
+          residual(x_, scale, r);
+          break;
+        }
+        t = 0.25;
       }
       x_ = xt;
+      r = rt;
       // A negligible update is convergence too (the residual tolerance may be below round-off).
       if (t * dx.norm() <= 1e-14 * size_ * std::sqrt(double(n_free_))) break;
     }
