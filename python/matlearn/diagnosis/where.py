@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from .. import replay
+from ..learning.initial import fill_marker_gaps
 
 
 @dataclass
@@ -42,16 +43,11 @@ def constrained_residual(problem, model, rec, max_frames: int = 30) -> ResidualF
     fixed = np.zeros(scene.mesh.num_vertices, bool)
     fixed[scene.fixed] = True
     V = np.asarray(scene.mesh.vertices)
-    # marker displacement -> nearest vertex (averaged), NaN-safe via interpolation of seen frames
-    mk = rec.markers.copy()
-    for k in range(mk.shape[1]):  # fill unseen frames by interpolation (per marker, not per frame)
-        s = ~np.isnan(mk[:, k, 0])
-        if s.sum() == 0:
-            mk[:, k] = rec.marker_rest[k]
-        elif s.sum() < len(s):
-            for d in range(3):
-                mk[~s, k, d] = np.interp(rec.times[~s], rec.times[s], mk[s, k, d])
-    disp = mk - rec.marker_rest[None]
+    # marker displacement -> nearest vertex (averaged); unseen frames filled by interpolation,
+    # markers never seen dropped (the learning step's gap filling)
+    mk, seen_markers = fill_marker_gaps(rec.times, rec.markers)
+    near = near[seen_markers]
+    disp = mk - rec.marker_rest[seen_markers][None]
     uniq, inv = np.unique(near, return_inverse=True)
     vd = np.zeros((len(rec.times), len(uniq), 3))
     np.add.at(vd, (slice(None), inv), disp)
@@ -72,15 +68,9 @@ def constrained_residual(problem, model, rec, max_frames: int = 30) -> ResidualF
     integ.set_prescribed(idx)
     integ.set_state(x0, v0)
     steps = len(sim_t) - 1
-    # step by step (only the sampled frames and their predecessors are kept)
+    # the whole constrained run in one C++ call; only a few sampled frames are analysed below
     zero = np.zeros_like(V)
-    keep = set(np.unique(np.linspace(1, steps, min(max_frames, steps)).astype(int)).tolist())
-    keep |= {i - 1 for i in keep}
-    X, Vel = {0: x0}, {0: np.asarray(v0)}
-    for i in range(1, steps + 1):
-        integ.step(zero, T_at[i])
-        if i in keep:
-            X[i], Vel[i] = np.array(integ.x), np.array(integ.v)
+    X, Vel = integ.simulate_constrained(T_at[1:], zero)
     frames = np.unique(np.linspace(1, steps, min(max_frames, steps)).astype(int))
     M = np.asarray(model.vertex_mass)[:, None]
     g = np.asarray(scene.gravity)[None]
