@@ -2,14 +2,18 @@
 
 For every effect of the vocabulary a synthetic case whose truth has it (simulated on a finer mesh
 than the model's, so a discretisation gap exists as with real data), a control case without any
-effect and two cases combining two effects. Shapes (bar proportions, resolutions), magnitudes and
-signs vary between cases; nothing in matlearn.diagnosis is told the effect or tuned to a case.
+effect and two cases combining two effects; the cases (shapes, truths, lab-like release / drop /
+tap motions) are defined in bench/diagnosis_cases.py. Nothing in matlearn.diagnosis is told the
+effect or tuned to a case.
 
-    python bench/diagnosis_suite.py [--work DIR] [--only NAME ...] [--fresh]
+    python bench/diagnosis_suite.py [--work DIR] [--only NAME ...] [--fresh] [--rediagnose]
+    python bench/diagnosis_suite.py --set random --seed N [--cases K]   # a second, random set
+    python bench/diagnosis_suite.py --timing                            # one ~3k-tet diagnosis
 
-Writes bench/results/diagnosis_suite.json: {"cases": [{case, true_effects, verdict,
-top1_correct, region_iou, gap_before_pct, gap_after_pct, wall_s, ...}], "totals": {...}}.
-Per-case results are cached in the work folder, so an interrupted run resumes.
+Writes bench/results/diagnosis_suite.json (named set) or diagnosis_suite_random.json (random
+set): {"cases": [{case, true_effects, verdict, top1_correct, region_iou, gap_before_pct,
+gap_after_pct, wall_s, ...}], "totals": {...}}. Per-case results are cached in the work folder,
+so an interrupted run resumes. --timing adds totals.timing_3k (s) to diagnosis_suite.json.
 
 top1_correct: the verdict's first effect is a true effect, or a true effect is listed in its
 `confounded_with` (density and stiffness scale cannot be told apart when every load is gravity
@@ -26,155 +30,44 @@ from pathlib import Path
 
 import numpy as np
 
-from matlearn import _core, meshes
 from matlearn.diagnosis import diagnose
-from matlearn.materials import Damping, Material, make_model
-from matlearn.synthetic import Motion, make_case
+from matlearn.materials import Damping, Material
+from matlearn.scene import vertices_in_box
+from matlearn.synthetic import make_case
 
 ROOT = Path(__file__).resolve().parent
-RHO = 1000.0
+sys.path.insert(0, str(ROOT))
+from diagnosis_cases import (NOMINAL_DAMPING, build_motions, build_truth, make_shape,  # noqa: E402
+                             named_specs, random_specs)
 
-
-def _bar(L, W, H, cells):
-    return meshes.bar(L, W, H, cells)
-
-
-class DamageCorrection:
-    """History-dependent truth (Mullins-like damage): each element softens by
-    d = min(dmax, k * max-so-far |s - 1|); the state persists across steps and recordings."""
-
-    def __init__(self, mu, lam, k, dmax):
-        self.mu, self.lam, self.k, self.dmax = mu, lam, k, dmax
-        self.peak = None
-
-    def __call__(self, Fh, Fhdot):
-        Fh = np.asarray(Fh)
-        e = Fh - 1.0
-        if self.peak is None or len(self.peak) != len(Fh):
-            self.peak = np.zeros(len(Fh))
-        self.peak = np.maximum(self.peak, np.abs(e).max(axis=1))
-        d = np.minimum(self.dmax, self.k * self.peak)[:, None]
-        P = 2 * self.mu[:, None] * e + self.lam[:, None] * e.sum(axis=1, keepdims=True)
-        J = np.zeros((len(Fh), 3, 3))
-        J[:] = -(self.lam[:, None, None] * np.ones((3, 3)) + 2 * self.mu[:, None, None] * np.eye(3))
-        return -d * P, d[:, :, None] * J, None, None
-
-
-class SidePoly:
-    """Truth one-sided nonlinearity of a shape unlike the diagnosis family: exponential
-    stiffening/softening E * a * (exp(b d) - 1 - b d) / b on one side of s = 1."""
-
-    def __init__(self, E, a, b, side):
-        self.E, self.a, self.b, self.side = E, a, b, side
-
-    def __call__(self, Fh, Fhdot):
-        Fh = np.asarray(Fh)
-        d = np.clip(self.side * (Fh - 1.0), 0, None)
-        P = self.side * self.E * self.a * (np.exp(self.b * d) - 1 - self.b * d) / self.b
-        dd = self.E * self.a * (np.exp(self.b * d) - 1)
-        J = np.zeros(Fh.shape + (3,))
-        J[:, np.arange(3), np.arange(3)] = dd
-        return P, J, None, None
-
-
-def case_specs():
-    """name -> dict(true_effects, shape, truth edits). Magnitudes/signs vary on purpose."""
-    return {
-        "control": dict(effects=[], L=0.14, cells=(8, 3, 3)),
-        "stiffness_scale": dict(effects=["stiffness_scale"], L=0.15, cells=(8, 3, 3), E=1.4),
-        "poisson_ratio": dict(effects=["poisson_ratio"], L=0.13, W=0.04, H=0.035, cells=(8, 3, 3), nu=0.25),
-        "tension_nonlinearity": dict(effects=["tension_nonlinearity"], L=0.15, cells=(8, 3, 3),
-                                     side=(1.0, 3.0, 40.0)),
-        "compression_nonlinearity": dict(effects=["compression_nonlinearity"], L=0.14,
-                                         cells=(8, 3, 3), side=(-1.0, 3.0, 40.0)),
-        "rayleigh_damping": dict(drive=True, effects=["rayleigh_damping"], L=0.15, W=0.032, cells=(8, 3, 3),
-                                 damping=Damping(4.0, 0.004)),
-        "strain_dependent_damping": dict(effects=["strain_dependent_damping"], L=0.14,
-                                         cells=(8, 3, 3),
-                                         damping=Damping(0.0, 0.002, [], [0.3, 40.0])),
-        "heterogeneity": dict(drive=True, effects=["heterogeneity"], L=0.16, cells=(9, 3, 3),
-                              region=(0.35, 0.65), region_scale=0.3),
-        "density": dict(effects=["density"], L=0.14, W=0.04, H=0.03, cells=(8, 3, 3), rho=1.5),
-        "support_compliance": dict(drive=True, effects=["support_compliance"], L=0.15, cells=(8, 3, 3),
-                                   soft_layer=0.1),
-        "history_dependence": dict(effects=["history_dependence"], L=0.15, cells=(8, 3, 3),
-                                   damage=(8.0, 0.5)),
-        "combined_stiffness_damping": dict(drive=True, effects=["stiffness_scale", "rayleigh_damping"],
-                                           L=0.15, cells=(8, 3, 3), E=0.7,
-                                           damping=Damping(3.0, 0.004)),
-        "combined_heterogeneity_tension": dict(drive=True, effects=["heterogeneity", "tension_nonlinearity"],
-                                               L=0.16, cells=(9, 3, 3), region=(0.0, 0.3),
-                                               region_scale=2.5, side=(1.0, 2.0, 40.0)),
-    }
+RETRY_STEPS = (12, 5, 20, 8)  # the truth's static hold is sensitive to its load increments
 
 
 def build_case(work: Path, name: str, spec: dict, seed: int, reuse: bool = True) -> tuple[Path, np.ndarray | None]:
-    L, W, H = spec["L"], spec.get("W", 0.035), spec.get("H", 0.035)
-    cells = spec["cells"]
-    model_mesh = _bar(L, W, H, cells)
-    truth_mesh = _bar(L, W, H, tuple(int(np.ceil(1.5 * c)) for c in cells))
-    E0, nu0 = 6e5, 0.4
-    m = truth_mesh.num_tets
-    C = np.asarray(truth_mesh.vertices)[np.asarray(truth_mesh.tets)].mean(axis=1)
-    E = np.full(m, E0 * spec.get("E", 1.0))
-    region_model = None
-    if "region" in spec:
-        a, b = spec["region"]
-        inside = (C[:, 0] >= a * L) & (C[:, 0] <= b * L)
-        E[inside] *= spec["region_scale"]
-        Cm = np.asarray(model_mesh.vertices)[np.asarray(model_mesh.tets)].mean(axis=1)
-        region_model = np.flatnonzero((Cm[:, 0] >= a * L) & (Cm[:, 0] <= b * L))
-    if "soft_layer" in spec:
-        E[C[:, 0] < 0.08 * L] *= spec["soft_layer"]
-    truth_mat = Material("corotated", E, spec.get("nu", nu0), RHO * spec.get("rho", 1.0))
-    nominal_damping = Damping(0.0, 0.002)
-    truth_damping = spec.get("damping", nominal_damping)
-    correction = None
-    mu, lam = truth_mat.lame(m)
-    if "side" in spec:
-        side, a, b = spec["side"]
-        correction = _core.correction.PythonCorrection(SidePoly(E0, a, b, side))
-    if "damage" in spec:
-        k, dmax = spec["damage"]
-        correction = _core.correction.PythonCorrection(DamageCorrection(mu, lam, k, dmax))
-    tip = [[L - 0.2 * L, -1, -1], [1, 1, 1]]
-    rng = np.random.default_rng(seed)
-    f = 1.5 * (1 + 0.3 * rng.random()) * spec.get("load", 0.5)
-    dur = 0.2
-    if "damage" in spec:
-        # growing drive cycles: damage accumulates during the recording
-        kf = [[0.0, [0, 0, 0]], [0.03, [0, 0.004, 0]], [0.06, [0, 0, 0]], [0.09, [0, 0.012, 0]],
-              [0.12, [0, 0, 0]], [0.15, [0, 0.004, 0]], [0.18, [0, 0, 0]]]
-        motions = [Motion("drive", "train", dur, drive={"box": tip, "keyframes": kf}),
-                   Motion("drive", "train", dur, drive={"box": tip, "keyframes": [[t, [0, 0, d[1]]] for t, d in kf]}),
-                   Motion("drive", "test", dur, drive={"box": tip, "keyframes": [[0.0, [0, 0, 0]], [0.05, [0, -0.008, 0.004]], [0.1, [0, 0, 0]]]})]
-    elif spec.get("drive"):
-        # the tip is moved and brought back by a (robot) drive, then held: no static hold solve
-        a = 0.06 * L * (1 + 0.3 * rng.random())
-        kf = lambda d: [[0.0, [0, 0, 0]], [0.04, d], [0.08, [0, 0, 0]]]  # noqa: E731
-        motions = [Motion("drive", "train", dur, drive={"box": tip, "keyframes": kf([0, -a, 0.4 * a])}),
-                   Motion("drive", "train", dur, drive={"box": tip, "keyframes": kf([0, 0.3 * a, a])}),
-                   Motion("drive", "test", dur, drive={"box": tip, "keyframes": kf([0.2 * a, 0.8 * a, -a])})]
-    else:
-        motions = [Motion("release", "train", dur, load={"box": tip, "force": [0, -f, 0.4 * f]}, load_steps=12),
-                   Motion("release", "train", dur, twist={"box": tip, "torque": [0.03 * f, 0, 0]}, load_steps=12),
-                   Motion("release", "test", dur, load={"box": tip, "force": [0.3 * f, 0.8 * f, -f]}, load_steps=12)]
-    nominal = Material("corotated", E0, nu0, RHO)
+    """Write case `work/name/` (scene.toml, recordings, truth.json); return (scene path, model
+    elements of the true heterogeneity region or None)."""
+    model_mesh, truth_mesh, clamp, tip, axis, length = make_shape(spec["shape"])
+    truth_mat, truth_damping, correction, region_model = build_truth(spec, truth_mesh, model_mesh, axis, clamp)
     if reuse and (work / name / "scene.toml").exists():
         return work / name / "scene.toml", region_model
-    # the truth's static hold solve is sensitive to its load increments: retry with others
-    for steps in (12, 5, 20, 8):
+    nominal = Material("corotated", spec["E0"], spec["nu0"], spec["rho0"])
+    rng = np.random.default_rng(seed)
+    fixed = vertices_in_box(np.asarray(truth_mesh.vertices), clamp)
+    motions = build_motions(spec, truth_mesh, Material("corotated", spec["E0"], spec["nu0"], spec["rho0"]),
+                            fixed, tip, axis, length, rng)
+    extra = {"spec": spec, "region_model": region_model}
+    for steps in RETRY_STEPS:
         for m_ in motions:
             m_.load_steps = steps
         try:
             path = make_case(work, name, truth_mesh, truth_mat, truth_damping, model_mesh, nominal,
-                             nominal_damping, [[-1, -1, -1], [1e-6, 1, 1]], motions,
-                             marker_fraction=0.3, noise=2e-5, seed=seed, truth_correction=correction)
+                             Damping(*NOMINAL_DAMPING), clamp, motions, marker_fraction=0.25,
+                             noise=3e-5, seed=seed, truth_correction=correction, extra=extra)
             return path, region_model
         except RuntimeError as err:
             print(f"{name}: truth hold failed with {steps} load steps ({err})", file=sys.stderr)
-            if "damage" in spec:  # stateful truth: start from a fresh correction
-                correction = _core.correction.PythonCorrection(DamageCorrection(mu, lam, *spec["damage"]))
+            if "history_dependence" in spec["truth"]:  # stateful truth: start afresh
+                truth_mat, truth_damping, correction, _ = build_truth(spec, truth_mesh, model_mesh, axis, clamp)
     raise RuntimeError(f"{name}: the truth's static hold failed for every load-step count")
 
 
@@ -236,29 +129,20 @@ def totals(rows):
     }
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--work", default=str(ROOT / "work" / "diagnosis_suite"))
-    ap.add_argument("--only", nargs="*")
-    ap.add_argument("--fresh", action="store_true", help="rebuild cases and rediagnose")
-    ap.add_argument("--rediagnose", action="store_true", help="keep built cases, rediagnose")
-    args = ap.parse_args(argv)
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
-    specs = case_specs()
-    names = args.only or list(specs)
+def run_set(specs: dict, work: Path, names, fresh: bool, rediagnose: bool, seed0: int = 100):
     rows = []
     for i, name in enumerate(names):
         spec = specs[name]
         cache = work / name / "suite_row.json"
-        if cache.exists() and not (args.fresh or args.rediagnose):
+        if cache.exists() and not (fresh or rediagnose):
             rows.append(json.loads(cache.read_text()))
             print(f"{name}: cached", file=sys.stderr)
             continue
         print(f"== {name} ({i + 1}/{len(names)}): building truth", file=sys.stderr, flush=True)
         t0 = time.time()
         try:
-            path, region_model = build_case(work, name, spec, seed=100 + i, reuse=not args.fresh)
+            seed = seed0 + list(specs).index(name)
+            path, region_model = build_case(work, name, spec, seed=seed, reuse=not fresh)
             t0 = time.time()
             result = diagnose(path, work / name / "diagnosis", seed=0,
                               report=(name in ("heterogeneity",)))
@@ -267,24 +151,72 @@ def main(argv=None):
             row = {"case": name, "true_effects": spec["effects"], "verdict": None,
                    "top1_correct": False, "region_iou": None, "gap_before_pct": None,
                    "gap_after_pct": None, "wall_s": time.time() - t0, "error": str(err)}
+        row["shape"] = spec["shape"]["kind"]
+        row["motions"] = [m[0] for m in spec["motions"]]
         row["commit"] = _commit()
+        cache.parent.mkdir(parents=True, exist_ok=True)
         cache.write_text(json.dumps(row))
         rows.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
-    out = {"cases": rows, "totals": totals(rows)}
-    res = ROOT / "results" / "diagnosis_suite.json"
-    res.parent.mkdir(exist_ok=True)
-    if not args.only:
-        res.write_text(json.dumps(out, indent=1))
-    print(f"{'case':32s} {'true':40s} {'verdict':40s} top1 iou   before after  wall")
+    return rows
+
+
+def print_table(rows):
+    print(f"{'case':40s} {'shape':8s} {'true':42s} {'verdict':42s} top1 iou   before after  wall")
     for r in rows:
         if r.get("error"):
-            print(f"{r['case']:32s} FAILED: {r['error']}")
+            print(f"{r['case']:40s} FAILED: {r['error']}")
             continue
         iou_s = "-" if r["region_iou"] is None else f"{r['region_iou']:.2f}"
-        print(f"{r['case']:32s} {','.join(r['true_effects']):40s} {','.join(r['verdict']):40s} "
-              f"{'yes' if r['top1_correct'] else 'no ':4s} {iou_s:5s} {r['gap_before_pct']:6.2f} "
-              f"{r['gap_after_pct']:6.2f} {r['wall_s']:5.0f}")
+        print(f"{r['case']:40s} {r.get('shape', ''):8s} {','.join(r['true_effects']):42s} "
+              f"{','.join(r['verdict']):42s} {'yes' if r['top1_correct'] else 'no ':4s} {iou_s:5s} "
+              f"{r['gap_before_pct']:6.2f} {r['gap_after_pct']:6.2f} {r['wall_s']:5.0f}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", default=None, help="case folder (default bench/work/diagnosis_suite[_random_N])")
+    ap.add_argument("--only", nargs="*")
+    ap.add_argument("--fresh", action="store_true", help="rebuild cases and rediagnose")
+    ap.add_argument("--rediagnose", action="store_true", help="keep built cases, rediagnose")
+    ap.add_argument("--set", choices=("named", "random"), default="named")
+    ap.add_argument("--seed", type=int, default=1, help="seed of the random set")
+    ap.add_argument("--cases", type=int, default=10, help="size of the random set")
+    ap.add_argument("--timing", action="store_true",
+                    help="time one diagnosis of a ~3k-tet model with two recordings")
+    args = ap.parse_args(argv)
+    if args.timing:
+        from diagnosis_timing import run_timing
+
+        return run_timing(Path(args.work) if args.work else ROOT / "work" / "diagnosis_timing",
+                          ROOT / "results" / "diagnosis_suite.json", fresh=args.fresh)
+    if args.set == "random":
+        specs = random_specs(args.seed, args.cases)
+        work = Path(args.work) if args.work else ROOT / "work" / f"diagnosis_suite_random_{args.seed}"
+        res = ROOT / "results" / "diagnosis_suite_random.json"
+        seed0 = 1000 * args.seed
+    else:
+        specs = named_specs()
+        work = Path(args.work) if args.work else ROOT / "work" / "diagnosis_suite"
+        res = ROOT / "results" / "diagnosis_suite.json"
+        seed0 = 100
+    work.mkdir(parents=True, exist_ok=True)
+    names = args.only or list(specs)
+    unknown = [n for n in names if n not in specs]
+    if unknown:
+        raise SystemExit(f"unknown case(s) {unknown}; cases: {list(specs)}")
+    rows = run_set(specs, work, names, args.fresh, args.rediagnose, seed0)
+    out = {"set": args.set, "seed": args.seed if args.set == "random" else None,
+           "cases": rows, "totals": totals(rows)}
+    if not args.only:
+        res.parent.mkdir(exist_ok=True)
+        if res.exists():  # keep a timing measured separately
+            old = json.loads(res.read_text()).get("totals", {})
+            for key in ("timing_3k", "timing_3k_info"):
+                if key in old:
+                    out["totals"][key] = old[key]
+        res.write_text(json.dumps(out, indent=1))
+    print_table(rows)
     print(json.dumps(out["totals"], indent=1))
 
 

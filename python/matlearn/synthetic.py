@@ -10,6 +10,12 @@ Motions:
 * ``drive``: the vertices of a rest-space box follow keyframed displacements [(t, (dx, dy, dz))],
   eased between keyframes (half-cosine: zero velocity at every keyframe); before the first and
   after the last keyframe the displacement is held. A drive may also start from a held load.
+* ``flick``: the vertices of a box get an initial velocity (a tap) from rest (or from a held
+  load); the body swings out and the recording starts at the tapped region's first turning point
+  (its mean velocity along the tap reverses), so it begins, like a release, from a deformed pose
+  nearly at rest (what remains of the faster modes' motion is part of the experiment).
+* ``release`` with neither load nor twist is a drop: the body starts at its rest shape and
+  sags under gravity.
 """
 from __future__ import annotations
 
@@ -26,7 +32,7 @@ from .recording import Recording, save_recording
 from .replay import interpolate_frames
 from .scene import DEFAULT_GRAVITY, Scene, save_scene, vertices_in_box
 
-KINDS = ("release", "drive")
+KINDS = ("release", "drive", "flick")
 
 
 @dataclass
@@ -42,6 +48,8 @@ class Motion:
     twist: dict | None = None
     drive: dict | None = None
     load_steps: int = 5
+    velocity: dict | None = None
+    max_preroll: float = 0.3
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -50,6 +58,9 @@ class Motion:
             raise ValueError(f"Motion.role must be 'train' or 'test', got {self.role!r}")
         if not self.duration > 0:
             raise ValueError(f"Motion.duration must be > 0 (s), got {self.duration}")
+        if self.kind == "flick" and not (self.velocity and "box" in self.velocity
+                                         and "velocity" in self.velocity):
+            raise ValueError("a 'flick' motion needs velocity={'box': ..., 'velocity': [vx, vy, vz]}")
         if self.kind == "drive" and not self.drive:
             raise ValueError("a 'drive' motion needs drive={'box': ..., 'keyframes': [...]}")
         if self.drive:
@@ -126,6 +137,19 @@ def simulate_motion(mesh, model, fixed, time_step: float, gravity, motion: Motio
     if held:
         integ.static_solve(f_hold, load_steps=motion.load_steps)
     zero = np.zeros((n, 3))
+    if motion.kind == "flick":
+        tap = _box_vertices(mesh, motion.velocity["box"], "velocity", fixed)
+        v0 = np.zeros((n, 3))
+        vdir = np.asarray(motion.velocity["velocity"], float)
+        v0[tap] = vdir
+        integ.set_state(np.array(integ.x), v0)
+        pre = max(1, int(round(motion.max_preroll / time_step)))
+        Xp, Vp = integ.simulate(pre, zero, 1)
+        along = Vp[:, tap].mean(axis=1) @ vdir
+        rev = np.flatnonzero(along[1:] <= 0)
+        k = int(rev[0]) + 1 if len(rev) else int(np.argmin(np.abs(along)))
+        integ.set_state(Xp[k], Vp[k])
+        held = True
     if len(didx):
         targets = V[didx][None] + drive_displacement(motion.drive["keyframes"], times[1:])[:, None]
         X, _ = integ.simulate_constrained(targets, zero, progress=progress)
