@@ -12,9 +12,15 @@ static void resize_output(int m, CorrectionOutput& out) {
 }
 
 RbfCorrection::RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bias,
-                             VecX alpha_weights, double alpha_bias, double epsilon)
+                             VecX alpha_weights, double alpha_bias, double epsilon,
+                             VecX lower, VecX upper)
     : c_(std::move(centers)), w_(std::move(weights)), A_(linear), b_(bias),
-      wa_(std::move(alpha_weights)), a0_(alpha_bias), eps_(epsilon) {
+      wa_(std::move(alpha_weights)), a0_(alpha_bias), eps_(epsilon), lo_(std::move(lower)),
+      hi_(std::move(upper)) {
+  if (lo_.size() != hi_.size() || (lo_.size() != 0 && lo_.size() != 3))
+    throw InvalidInput("RbfCorrection: lower/upper must both be empty or have 3 entries");
+  if (lo_.size() == 3 && (!lo_.allFinite() || !hi_.allFinite() || (lo_.array() > hi_.array()).any()))
+    throw InvalidInput("RbfCorrection: need finite lower <= upper");
   if (w_.rows() != c_.rows())
     throw InvalidInput("RbfCorrection: weights must have one row per centre");
   if (wa_.size() != 0 && wa_.size() != c_.rows())
@@ -27,19 +33,25 @@ RbfCorrection::RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bia
 void RbfCorrection::evaluate(const MatX3& Fh, const MatX3&, CorrectionOutput& out) const {
   const int m = Fh.rows();
   resize_output(m, out);
-  const bool damp = wa_.size() > 0;
+  const bool damp = wa_.size() > 0, box = lo_.size() == 3;
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < m; ++e) {
     const Vec3 s = Fh.row(e).transpose();
     Vec3 p = A_ * (s - Vec3::Ones()) + b_;
     Mat3 J = A_;
     double da = a0_;
+    // Kernels at the clamped stretch; d(clamp)/ds is 1 inside the box, 0 outside.
+    Vec3 sc = s, inside = Vec3::Ones();
+    if (box) {
+      sc = s.cwiseMax(lo_).cwiseMin(hi_);
+      for (int i = 0; i < 3; ++i) inside[i] = (s[i] < lo_[i] || s[i] > hi_[i]) ? 0.0 : 1.0;
+    }
     for (int k = 0; k < c_.rows(); ++k) {
-      const Vec3 d = s - c_.row(k).transpose();
+      const Vec3 d = sc - c_.row(k).transpose();
       const double phi = std::sqrt(d.squaredNorm() + eps_ * eps_);
       const Vec3 w = w_.row(k).transpose();
       p += w * phi;
-      J += w * (d / phi).transpose();
+      J += w * (d.cwiseProduct(inside) / phi).transpose();
       if (damp) da += wa_[k] * phi;
     }
     out.dPh.row(e) = p.transpose();

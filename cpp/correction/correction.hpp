@@ -28,10 +28,13 @@ class Correction {
 ///   dPh(Fh) = A (Fh - 1) + b + sum_k w_k phi(|Fh - c_k|),   phi(r) = sqrt(r^2 + eps^2)
 ///   dalpha(Fh) = a0 + sum_k wa_k phi(|Fh - c_k|)
 /// centers (c x 3), weights (c x 3), linear A (3 x 3), bias b (3), alpha_weights (c), alpha_bias.
+/// Optional box [lower, upper] (3 each, or both empty): the kernels see the stretches clamped to
+/// the box (the hull of the training stretches), so outside it the RBF part stays at its boundary
+/// value and only the linear part extrapolates (continuous, bounded RBF contribution).
 class RbfCorrection final : public Correction {
  public:
   RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bias, VecX alpha_weights,
-                double alpha_bias, double epsilon);
+                double alpha_bias, double epsilon, VecX lower = VecX(), VecX upper = VecX());
   void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
 
  private:
@@ -40,6 +43,7 @@ class RbfCorrection final : public Correction {
   Vec3 b_;
   VecX wa_;
   double a0_, eps_;
+  VecX lo_, hi_;
 };
 
 /// Dense layer of an MLP: y = W x + b (W is out x in); batch norm folded in at export.

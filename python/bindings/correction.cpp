@@ -68,14 +68,18 @@ void define_correction(py::module_& m) {
       m, "RbfCorrection")
       .def(py::init([](const py::array& centers, const py::array& weights, const Mat3& linear,
                        const Vec3& bias, const py::array& alpha_weights, double alpha_bias,
-                       double epsilon) {
+                       double epsilon, const py::object& lower, const py::object& upper) {
              const MatX3 c = as_matrix<3>(centers, "centers");
+             const VecX lo = lower.is_none() ? VecX() : VecX(as_matrix<1>(lower, "lower"));
+             const VecX hi = upper.is_none() ? VecX() : VecX(as_matrix<1>(upper, "upper"));
              return std::make_shared<correction::RbfCorrection>(
                  c, as_matrix<3>(weights, "weights", c.rows()), linear, bias,
-                 as_matrix<1>(alpha_weights, "alpha_weights"), alpha_bias, epsilon);
+                 as_matrix<1>(alpha_weights, "alpha_weights"), alpha_bias, epsilon, lo, hi);
            }),
            py::arg("centers"), py::arg("weights"), py::arg("linear"), py::arg("bias"),
-           py::arg("alpha_weights"), py::arg("alpha_bias"), py::arg("epsilon"));
+           py::arg("alpha_weights"), py::arg("alpha_bias"), py::arg("epsilon"),
+           py::arg("lower") = py::none(), py::arg("upper") = py::none(),
+           "lower, upper: optional (3,) box the kernels clamp the stretches to (None: no clamp).");
 
   py::class_<correction::MlpCorrection, Correction, std::shared_ptr<correction::MlpCorrection>>(
       m, "MlpCorrection")

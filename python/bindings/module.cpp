@@ -12,6 +12,8 @@ PYBIND11_MODULE(_core, m) {
   // Space-time optimisation builds on the FEM model (forces and nominal tangents).
   auto st = m.def_submodule("spacetime", "sparse reduced space-time optimisation, control forces");
   matlearn::bindings::define_spacetime(st);
+  auto fit = m.def_submodule("fit", "normal equations of the stress-correction fit over all frames");
+  matlearn::bindings::define_fit(fit);
   auto obs = m.def_submodule("observation", "point-cloud correspondences and observation residuals");
   matlearn::bindings::define_observation(obs);
   auto mesh = m.def_submodule("mesh", "TetGen tetrahedralisation");

@@ -120,6 +120,123 @@ def test_rbf_kernel_and_params_roundtrip():
     p = RbfParams(C, np.ones((2, 3)), alpha_weights=np.ones(2), alpha_bias=0.5, epsilon=0.1)
     q = RbfParams.from_arrays(p.to_arrays())
     np.testing.assert_array_equal(q.centers, p.centers)
-    assert q.alpha_bias == 0.5
+    assert q.alpha_bias == 0.5 and q.clamp
+    old = {k: v for k, v in p.to_arrays().items() if k != "rbf_clamp"}  # saved before the clamp
+    assert not RbfParams.from_arrays(old).clamp
     with pytest.raises(ValueError):
         fit_correction(None, [])
+
+
+def _python_normal_equations(nominal, current, fr, C, eps, box, damping):
+    """The former per-frame Python accumulation (reference for the C++ one)."""
+    c = len(C)
+    rest_phi = rbf_kernel(np.ones((1, 3)), C, eps, box)[0]
+    p = 3 * (c + 3) + ((c + 1) if damping else 0)
+    N, rhs, yy = np.zeros((p, p)), np.zeros(p), 0.0
+    n = fr.X.shape[1]
+    keep = np.ones(3 * n, bool)
+    if fr.constrained is not None:
+        keep[(3 * np.asarray(fr.constrained)[:, None] + np.arange(3)).ravel()] = False
+    P = fr.phi
+    for x, v, f in zip(fr.X, fr.V, fr.fc):
+        Fh = np.asarray(nominal.principal_kinematics(x, v)[0])
+        Pk = rbf_kernel(Fh, C, eps, box)
+        feat = np.concatenate([Pk - rest_phi[None], Fh - 1.0], axis=1)
+        B = nominal.force_map(x)
+        y = np.asarray(f, float).ravel()
+        if current is not None:
+            y = y + (np.asarray(current.forces(x, v)) - np.asarray(nominal.forces(x, v))).ravel()
+        cols = []
+        for comp in range(3):
+            Bk = B[:, comp::3]
+            cols.append((Bk.T @ P).T @ feat if P is not None else Bk[keep] @ feat)
+        if damping:
+            G = nominal.stiffness_damping_map(x, v)
+            Q = np.concatenate([Pk, np.ones((len(Pk), 1))], axis=1)
+            cols.append((G.T @ P).T @ Q if P is not None else G[keep] @ Q)
+        D = np.concatenate(cols, axis=1)
+        yr = P.T @ y if P is not None else y[keep]
+        N += D.T @ D
+        rhs += D.T @ yr
+        yy += yr @ yr
+    return N, rhs, yy
+
+
+@pytest.mark.parametrize("use_basis", [False, True])
+@pytest.mark.parametrize("clamp", [False, True])
+def test_cpp_normal_equations_match_python_reference(use_basis, clamp):
+    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0), Damping(0.0, 0.01))
+    nominal = sc.model()
+    rng = np.random.default_rng(1)
+    C = 1 + 0.05 * rng.standard_normal((5, 3))
+    cur = RbfParams(C, rng.normal(0, 1e4, (5, 3)), alpha_weights=rng.normal(0, 1e-3, 5), epsilon=0.05)
+    current = sc.model(cur.correction())
+    X, Vel = _frames(sc, nominal, steps=12)
+    fc = rng.normal(0, 1e-2, X.shape)
+    n = sc.mesh.num_vertices
+    phi = np.linalg.qr(rng.standard_normal((3 * n, 4)))[0] if use_basis else None
+    fr = FitFrames(X, Vel, fc, phi, sc.fixed)
+    box = (C.min(0) - 0.01, C.max(0) + 0.01) if clamp else (None, None)
+    for cm, damping in ((current, True), (None, False)):
+        want = _python_normal_equations(nominal, cm, fr, C, 0.05, box, damping)
+        free = None
+        if phi is None:
+            free = np.ones(3 * n, bool)
+            free[(3 * sc.fixed[:, None] + np.arange(3)).ravel()] = False
+        got = _core.fit.normal_equations(nominal, cm, X, Vel, fc, phi, free, C, 0.05, box[0], box[1], damping)
+        assert got[3] == len(X)
+        for g, w in zip(got[:3], want):
+            w = np.asarray(w)
+            np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-10 * np.abs(w).max())
+
+
+def test_correction_beyond_training_stretches_is_bounded_and_continuous():
+    # Fit the analytic a (s - 1)^2 correction of the first test on its motion, then walk the
+    # stretch far beyond the trained range: the RBF part is clamped to the centres' box, so the
+    # correction is continuous, its Jacobian matches finite differences, and outside the box it
+    # is exactly boundary value + A (s - s_boundary) (no growth of the RBF part).
+    a = 2e6
+    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
+    nominal = sc.model()
+
+    def analytic(Fh, Fhdot):
+        Fh = np.asarray(Fh)
+        J = np.zeros((len(Fh), 3, 3))
+        J[:, [0, 1, 2], [0, 1, 2]] = 2 * a * (Fh - 1)
+        return a * (Fh - 1) ** 2, J, None, None
+
+    truth = sc.model(_core.correction.PythonCorrection(analytic))
+    X, Vel = _frames(sc, truth)
+    fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    params, _ = fit_correction(nominal, [FitFrames(X, Vel, fc, None, sc.fixed)], num_centers=16,
+                               damping=False, ridge=1e-8)
+    lo, hi = params.box()
+    assert hi[0] < 1.5  # the walk below goes far beyond the trained range
+    corr = params.correction()
+    t = np.linspace(0.0, 1.0, 2001)
+    S = np.stack([1 + 0.8 * t, 1 - 0.2 * t, 1 - 0.2 * t], axis=1)  # stretch 1 -> 1.8
+    P, J = [np.asarray(v) for v in corr.evaluate(S, np.zeros_like(S))[:2]]
+    # Continuity: steps between neighbours bounded by the Jacobian's scale times the step.
+    step = np.abs(np.diff(P, axis=0)).max()
+    assert step < 2 * np.abs(J).max() * 0.8 / 2000
+    # Jacobian = finite differences on both sides of the box boundary.
+    h = 1e-6
+    for idx in (100, -1):
+        for i in range(3):
+            d = np.zeros(3)
+            d[i] = h
+            fd = (np.asarray(corr.evaluate((S[idx] + d)[None], np.zeros((1, 3)))[0])
+                  - np.asarray(corr.evaluate((S[idx] - d)[None], np.zeros((1, 3)))[0]))[0] / (2 * h)
+            np.testing.assert_allclose(J[idx][:, i], fd, rtol=1e-5, atol=1e-6 * np.abs(J).max())
+    # Outside the box the correction is affine with slope A: its second difference vanishes.
+    k = np.flatnonzero(np.all((S > hi) | (S < lo), axis=1))
+    assert len(k) > 100
+    Pk = P[k]
+    np.testing.assert_allclose(np.diff(Pk, 2, axis=0), 0, atol=1e-8 * np.abs(Pk).max())
+    np.testing.assert_allclose(J[k], np.broadcast_to(params.linear, J[k].shape), rtol=1e-12)
+    # Everywhere, the RBF part (correction minus its linear part) equals its value at the
+    # stretch clamped into the box: bounded by its range over the box.
+    Sc = np.clip(S, lo, hi)
+    Pc = np.asarray(corr.evaluate(Sc, np.zeros_like(Sc))[0])
+    np.testing.assert_allclose(P - (S - 1) @ params.linear.T, Pc - (Sc - 1) @ params.linear.T,
+                               atol=1e-9 * np.abs(P).max())

@@ -5,7 +5,11 @@ The correction is an RBF model over principal stretches Fh (RbfCorrection in C++
     dPh(Fh)    = A (Fh - 1) + b + sum_k w_k phi_k(Fh),   phi_k(Fh) = sqrt(|Fh - c_k|^2 + eps^2)
     dalpha(Fh) = a0 + sum_k wa_k phi_k(Fh)                 (change of the stiffness-damping alpha_K)
 
-Centres c_k come from k-means over the principal stretches of all elements and frames. The bias
+Centres c_k come from k-means over the principal stretches of all elements and frames. The
+kernels see the stretch clamped to the box of the centres widened by eps (`RbfParams.box`): the
+RBF part is only trusted where it has centres; outside, it keeps its boundary value and only
+the linear part A (Fh - 1) extrapolates, so a correction evaluated beyond the training
+stretches stays continuous and grows at most linearly. The bias
 is tied to the weights, b = -sum_k w_k phi_k(1), so the rest shape stays stress-free (the truth
 and the nominal law are both stress-free at rest). Damping is passive by construction: the C++
 model clamps alpha_K + dalpha at 0 per element.
@@ -19,8 +23,9 @@ with B_j the force map and G_j the stiffness-damping map (column e = -K_e v_e). 
 projected on the space-time basis (Phi^T ...): the space-time solve determines only the reduced
 forces; the component of fc orthogonal to span(M Phi) is the elastic response to the basis
 truncation, not a material error, and fitting it would learn the truncation. The problem is
-linear in (w, A, wa, a0): one ridge-regularised least-squares solve over all frames (normal
-equations accumulated frame by frame from C++-built sparse maps).
+linear in (w, A, wa, a0): one ridge-regularised least-squares solve over all frames; the normal
+equations are accumulated over all frames of a recording in one C++ call
+(`_core.fit.normal_equations`, cpp/learning/fit_normal_equations.cpp).
 """
 from __future__ import annotations
 
@@ -34,7 +39,8 @@ from .. import _core
 @dataclass
 class RbfParams:
     """Parameters of an RbfCorrection (see module docstring); shapes (c,3), (c,3), (3,3), (3,),
-    (c,) or (0,), scalar, scalar."""
+    (c,) or (0,), scalar, scalar; clamp: clamp the kernel input to `box()` (False for models
+    saved before the clamp existed)."""
 
     centers: np.ndarray
     weights: np.ndarray
@@ -43,28 +49,49 @@ class RbfParams:
     alpha_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
     alpha_bias: float = 0.0
     epsilon: float = 0.05
+    clamp: bool = True
+
+    def box(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(lower, upper) (3,) each: the centres' bounding box widened by epsilon, or
+        (None, None) without clamping."""
+        return centers_box(self.centers, self.epsilon) if self.clamp else (None, None)
 
     def correction(self):
+        lo, hi = self.box()
         return _core.correction.RbfCorrection(
             np.ascontiguousarray(self.centers, float), np.ascontiguousarray(self.weights, float),
             np.asarray(self.linear, float), np.asarray(self.bias, float),
-            np.asarray(self.alpha_weights, float), float(self.alpha_bias), float(self.epsilon))
+            np.asarray(self.alpha_weights, float), float(self.alpha_bias), float(self.epsilon),
+            lower=lo, upper=hi)
 
     def to_arrays(self, prefix: str = "rbf_") -> dict:
         return {prefix + k: np.asarray(getattr(self, k), float) for k in
-                ("centers", "weights", "linear", "bias", "alpha_weights", "alpha_bias", "epsilon")}
+                ("centers", "weights", "linear", "bias", "alpha_weights", "alpha_bias", "epsilon",
+                 "clamp")}
 
     @classmethod
     def from_arrays(cls, d, prefix: str = "rbf_") -> "RbfParams":
+        keys = d.files if hasattr(d, "files") else d.keys()
         return cls(**{k: np.asarray(d[prefix + k], float) for k in
                       ("centers", "weights", "linear", "bias", "alpha_weights")},
                    alpha_bias=float(np.asarray(d[prefix + "alpha_bias"])),
-                   epsilon=float(np.asarray(d[prefix + "epsilon"])))
+                   epsilon=float(np.asarray(d[prefix + "epsilon"])),
+                   clamp=bool(np.asarray(d[prefix + "clamp"])) if prefix + "clamp" in keys else False)
 
 
-def rbf_kernel(Fh: np.ndarray, centers: np.ndarray, eps: float) -> np.ndarray:
-    """phi_k(Fh) = sqrt(|Fh - c_k|^2 + eps^2), (m, c)."""
-    d2 = ((np.asarray(Fh)[:, None, :] - centers[None]) ** 2).sum(-1)
+def centers_box(centers: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding box of the centres (c, 3) widened by eps on every side: where the RBF part of a
+    correction is trusted (k-means centres lie inside the hull of the fitted stretches)."""
+    C = np.asarray(centers, float)
+    return C.min(axis=0) - eps, C.max(axis=0) + eps
+
+
+def rbf_kernel(Fh: np.ndarray, centers: np.ndarray, eps: float, box=(None, None)) -> np.ndarray:
+    """phi_k(Fh) = sqrt(|clamp(Fh) - c_k|^2 + eps^2), (m, c); box (lower, upper) or Nones."""
+    Fh = np.asarray(Fh, float)
+    if box[0] is not None:
+        Fh = np.clip(Fh, box[0], box[1])
+    d2 = ((Fh[:, None, :] - centers[None]) ** 2).sum(-1)
     return np.sqrt(d2 + eps * eps)
 
 
@@ -105,11 +132,6 @@ class FitFrames:
     constrained: np.ndarray | None = None
 
 
-def _features(Fh, centers, eps, rest_phi):
-    P = rbf_kernel(Fh, centers, eps)
-    return np.concatenate([P - rest_phi[None], Fh - 1.0], axis=1), P
-
-
 def correction_force(model_corr, model_nom, x, v) -> np.ndarray:
     """Force (3n) the current correction adds at (x, v) (elastic + damping)."""
     return (np.asarray(model_corr.forces(x, v)) - np.asarray(model_nom.forces(x, v))).ravel()
@@ -117,29 +139,29 @@ def correction_force(model_corr, model_nom, x, v) -> np.ndarray:
 
 def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_model=None,
                    damping: bool = True, ridge: float = 1e-6, seed: int = 0, stride: int = 1,
-                   centers=None) -> tuple[RbfParams, dict]:
+                   centers=None, clamp: bool = True) -> tuple[RbfParams, dict]:
     """Least-squares RBF correction from control forces (module docstring).
 
     nominal_model: the model without correction; frames: list of FitFrames; current_model: the
     same model with the current correction (or None); damping: also fit the strain-dependent alpha_K change;
     ridge: Tikhonov weight relative to the mean diagonal of the (column-normalised) normal
-    matrix; stride: use every stride-th frame; centers: (C, eps) to reuse instead of k-means.
+    matrix; stride: use every stride-th frame; centers: (C, eps) to reuse instead of k-means;
+    clamp: clamp the kernels to the centres' box (RbfParams.box).
     Returns (params, info) with info = dict(residual_ratio, frames, parameters)."""
     if not frames:
         raise ValueError("fit_correction: no frames")
-    cur_model = current_model
-    # Centres over the stretches of all used frames.
-    samples = []
-    for fr in frames:
-        for j in range(0, len(fr.X), stride):
-            Fh = nominal_model.principal_kinematics(fr.X[j], fr.V[j])[0]
-            samples.append(np.asarray(Fh))
+    if nominal_model is None:
+        raise ValueError("fit_correction: nominal_model is None")
     if centers is None:
+        samples = [np.asarray(_core.fit.principal_stretches(nominal_model, np.asarray(fr.X)[::stride]))
+                   for fr in frames]
         C, eps = choose_centers(np.concatenate(samples), num_centers, seed)
     else:
         C, eps = centers
+    C = np.ascontiguousarray(C, float)
     c = len(C)
-    rest_phi = rbf_kernel(np.ones((1, 3)), C, eps)[0]
+    box = centers_box(C, eps) if clamp else (None, None)
+    rest_phi = rbf_kernel(np.ones((1, 3)), C, eps, box)[0]
     ne = 3 * (c + 3)
     na = (c + 1) if damping else 0
     p = ne + na
@@ -147,39 +169,20 @@ def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_m
     rhs = np.zeros(p)
     yy = 0.0
     count = 0
-    k = 0
     for fr in frames:
         n = fr.X.shape[1]
-        if fr.phi is not None:
-            P = np.asarray(fr.phi)
-        else:
-            keep = np.ones(3 * n, bool)
+        free = None
+        if fr.phi is None:
+            free = np.ones(3 * n, bool)
             if fr.constrained is not None:
-                keep[(3 * np.asarray(fr.constrained)[:, None] + np.arange(3)).ravel()] = False
-            P = None
-        for j in range(0, len(fr.X), stride):
-            x, v = fr.X[j], fr.V[j]
-            Fh = samples[k]
-            k += 1
-            feat, Pk = _features(Fh, C, eps, rest_phi)
-            B = nominal_model.force_map(x)
-            y = np.asarray(fr.fc[j], float).ravel()
-            if cur_model is not None:
-                y = y + correction_force(cur_model, nominal_model, x, v)
-            cols = []
-            for comp in range(3):
-                Bk = B[:, comp::3]
-                cols.append((Bk.T @ P).T @ feat if P is not None else (Bk[keep] @ feat))
-            if damping:
-                G = nominal_model.stiffness_damping_map(x, v)
-                Q = np.concatenate([Pk, np.ones((len(Pk), 1))], axis=1)
-                cols.append((G.T @ P).T @ Q if P is not None else G[keep] @ Q)
-            D = np.concatenate(cols, axis=1)
-            yr = P.T @ y if P is not None else y[keep]
-            N += D.T @ D
-            rhs += D.T @ yr
-            yy += yr @ yr
-            count += 1
+                free[(3 * np.asarray(fr.constrained)[:, None] + np.arange(3)).ravel()] = False
+        Nf, rf, yf, cf = _core.fit.normal_equations(
+            nominal_model, current_model, np.asarray(fr.X)[::stride], np.asarray(fr.V)[::stride],
+            np.asarray(fr.fc)[::stride], fr.phi, free, C, eps, box[0], box[1], damping)
+        N += Nf
+        rhs += rf
+        yy += yf
+        count += cf
     scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
     Ns = N / scale[:, None] / scale[None]
     reg = ridge * np.trace(Ns) / p
@@ -193,8 +196,7 @@ def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_m
         wa, a0 = theta[ne:ne + c].copy(), float(theta[ne + c])
     else:
         wa, a0 = np.zeros(0), 0.0
-    params = RbfParams(C, W, A, bias, wa, a0, eps)
+    params = RbfParams(C, W, A, bias, wa, a0, eps, clamp)
     info = {"residual_ratio": float(np.sqrt(res2 / yy)) if yy > 0 else 0.0, "frames": count,
             "parameters": p, "centers": c, "epsilon": eps}
     return params, info
-
