@@ -11,9 +11,9 @@ Motions:
   eased between keyframes (half-cosine: zero velocity at every keyframe); before the first and
   after the last keyframe the displacement is held. A drive may also start from a held load.
 * ``flick``: the vertices of a box get an initial velocity (a tap) from rest (or from a held
-  load); the body swings out and the recording starts at the tapped region's first turning point
-  (its mean velocity along the tap reverses), so it begins, like a release, from a deformed pose
-  nearly at rest (what remains of the faster modes' motion is part of the experiment).
+  load); the body swings and the recording starts at the least kinetic energy within the
+  pre-roll after the first energy peak, so it begins, like a release, from a deformed pose nearly
+  at rest (what remains of the motion is part of the experiment).
 * ``release`` with neither load nor twist is a drop: the body starts at its rest shape and
   sags under gravity.
 """
@@ -145,9 +145,10 @@ def simulate_motion(mesh, model, fixed, time_step: float, gravity, motion: Motio
         integ.set_state(np.array(integ.x), v0)
         pre = max(1, int(round(motion.max_preroll / time_step)))
         Xp, Vp = integ.simulate(pre, zero, 1)
-        along = Vp[:, tap].mean(axis=1) @ vdir
-        rev = np.flatnonzero(along[1:] <= 0)
-        k = int(rev[0]) + 1 if len(rev) else int(np.argmin(np.abs(along)))
+        # start at the least kinetic energy after the swing's first energy peak
+        ke = (np.asarray(model.vertex_mass)[None] * (Vp**2).sum(axis=2)).sum(axis=1)
+        peak = int(np.argmax(ke[: max(2, len(ke) // 3)]))
+        k = peak + int(np.argmin(ke[peak:]))
         integ.set_state(Xp[k], Vp[k])
         held = True
     if len(didx):
