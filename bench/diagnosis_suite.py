@@ -72,8 +72,13 @@ def build_case(work: Path, name: str, spec: dict, seed: int, reuse: bool = True)
 
 
 def _commit() -> str:
+    """The code a row was measured with: MATLEARN_SUITE_COMMIT (set when running a snapshot of a
+    commit), else HEAD of this checkout, "+dirty" when python/matlearn/diagnosis has edits."""
+    import os
     import subprocess
 
+    if os.environ.get("MATLEARN_SUITE_COMMIT"):
+        return os.environ["MATLEARN_SUITE_COMMIT"]
     try:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                              text=True, check=True).stdout.strip()
