@@ -154,3 +154,28 @@ def test_regime_split_of_a_tension_only_residual():
     field.dp = 50.0 * Fhd
     r = where.regime_split(field)
     assert r["dissipative"] > 0.99
+
+
+def test_strain_dependent_damping_nests_rayleigh_and_adds_an_amplitude_dependence():
+    ctx = _ctx(omega=20.0, d_ref=0.05)
+    x = _deformed(ctx.mesh, 3, 0.002)
+    v = _deformed(ctx.mesh, 4, 0.01) - np.asarray(ctx.mesh.vertices)
+    ray = np.asarray(build_model(ctx, {"rayleigh_damping": [0.7, 1.3]}).forces(x, v))
+    sdd = np.asarray(build_model(ctx, {"strain_dependent_damping": [0.7, 1.3, 0.0, 0.0]}).forces(x, v))
+    np.testing.assert_allclose(sdd, ray, rtol=1e-12, atol=1e-15)
+    # a positive slope raises alpha_K where the largest stretch exceeds 1: more damping force
+    m = build_model(ctx, {"strain_dependent_damping": [0.7, 1.3, 2.0, 0.0]})
+    el = build_model(ctx, {})
+    f_el = np.asarray(el.forces(x, 0 * v))
+    d_ray = (ray - f_el).ravel() @ v.ravel()
+    d_sdd = (np.asarray(m.forces(x, v)) - f_el).ravel() @ v.ravel()
+    assert d_sdd < d_ray < 0
+
+
+def test_locate_region_chooses_the_split_by_the_two_stiffness_fit():
+    rng = np.random.default_rng(4)
+    Jp = rng.standard_normal((400, 12)) * np.linspace(3.0, 0.3, 12)  # weakly loaded patches last
+    truth = np.zeros(12)
+    truth[[8, 9, 10]] = 0.9  # a stiffer region among weakly loaded patches
+    sel, _ = fitting.locate_region(Jp, -Jp @ truth)
+    assert set(np.flatnonzero(sel)) == {8, 9, 10}

@@ -55,8 +55,8 @@ FAMILIES = {
         Family("tension_nonlinearity", ("c2", "c3"), 0, "stress polynomial for s > 1"),
         Family("compression_nonlinearity", ("c2", "c3"), 0, "stress polynomial for s < 1"),
         Family("rayleigh_damping", ("d_alpha_mass", "d_alpha_stiffness"), 0, "Rayleigh coefficients"),
-        Family("strain_dependent_damping", ("d_alpha_stiffness", "c1", "c2"), 0,
-               "alpha_K as a quadratic in s1 - 1 (level, slope, curvature)"),
+        Family("strain_dependent_damping", ("d_alpha_mass", "d_alpha_stiffness", "c1", "c2"), 0,
+               "Rayleigh damping with alpha_K a quadratic in s1 - 1 (nests rayleigh_damping)"),
         Family("heterogeneity", ("log_scale_region", "log_scale_rest"), 1,
                "stiffness of a located region relative to the rest of the body"),
         Family("density", ("log_scale",), 0, "uniform density scale"),
@@ -64,6 +64,17 @@ FAMILIES = {
     )
 }
 CANDIDATES = tuple(FAMILIES)  # the stateless, simulated families
+# Nuisance parameter: the coarse mesh's stiffness offset, free inside the plausible
+# discretisation range (EffectContext.offset_range). Families that change the elastic response
+# only in part (Poisson ratio, nonlinearity, damping, clamp) are fitted together with it, so the
+# stiffness offset a coarse mesh needs is not mistaken for (or hidden from) them.
+NUISANCE = "discretisation_offset"
+WITH_NUISANCE = ("poisson_ratio", "tension_nonlinearity", "compression_nonlinearity",
+                 "rayleigh_damping", "strain_dependent_damping", "support_compliance")
+
+
+def n_params(name: str) -> int:
+    return 1 if name == NUISANCE else len(FAMILIES[name].parameters)
 
 
 @dataclass
@@ -125,7 +136,7 @@ def _one_sided_poly(d_ref: float, E0: float, tension, compression):
 
 def build_model(ctx: EffectContext, params: dict):
     """The C++ model with the families in `params` ({name: theta}) applied to the nominal one."""
-    unknown = set(params) - set(FAMILIES)
+    unknown = set(params) - set(FAMILIES) - {NUISANCE}
     if unknown:
         raise ValueError(f"unknown effect families {sorted(unknown)}")
     m = ctx.mesh.num_tets
@@ -143,6 +154,9 @@ def build_model(ctx: EffectContext, params: dict):
 
     if "stiffness_scale" in params:
         E *= np.exp(np.clip(th("stiffness_scale")[0], -3, 3))
+    if NUISANCE in params:
+        lo, hi = ctx.offset_range
+        E *= np.exp(np.clip(th(NUISANCE)[0], lo - ctx.offset_applied, hi - ctx.offset_applied))
     if "heterogeneity" in params and ctx.region is not None:
         t = th("heterogeneity")
         E[ctx.region] *= np.exp(np.clip(t[0], -4, 4))
@@ -160,10 +174,11 @@ def build_model(ctx: EffectContext, params: dict):
         aK = max(aK + t[1] * 0.1 / ctx.omega, 0.0)
     if "strain_dependent_damping" in params:
         t = th("strain_dependent_damping")
-        aK = max(aK + t[0] * 0.1 / ctx.omega, 0.0)
+        aM = max(aM + t[0] * 0.1 * ctx.omega, 0.0)
+        aK = max(aK + t[1] * 0.1 / ctx.omega, 0.0)
         kpoly = list(kpoly) + [0.0] * max(0, 2 - len(kpoly))
         for k in range(2):
-            kpoly[k] += t[k + 1] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1)
+            kpoly[k] += t[k + 2] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1)
     if "tension_nonlinearity" in params:
         tension = th("tension_nonlinearity")
     if "compression_nonlinearity" in params:
@@ -204,8 +219,9 @@ def describe(name: str, theta, ctx: EffectContext) -> dict:
             "alpha_stiffness": max(ctx.damping.alpha_stiffness + t[1] * 0.1 / ctx.omega, 0.0),
         }
     if name == "strain_dependent_damping":
-        out = {"alpha_stiffness": max(ctx.damping.alpha_stiffness + t[0] * 0.1 / ctx.omega, 0.0)}
-        out.update({f"alpha_stiffness_c{k + 1}": float(t[k + 1] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1))
+        out = {"alpha_mass": max(ctx.damping.alpha_mass + t[0] * 0.1 * ctx.omega, 0.0),
+               "alpha_stiffness": max(ctx.damping.alpha_stiffness + t[1] * 0.1 / ctx.omega, 0.0)}
+        out.update({f"alpha_stiffness_c{k + 1}": float(t[k + 2] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1))
                     for k in range(2)})
         return out
     if name in ("tension_nonlinearity", "compression_nonlinearity"):

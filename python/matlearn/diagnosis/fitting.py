@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .effects import FAMILIES, build_model
+from .effects import FAMILIES, NUISANCE, build_model, n_params
 
 
 @dataclass
@@ -30,7 +30,54 @@ class Fit:
 
 
 def residual_of(problem, ctx, params: dict, recs=None) -> np.ndarray:
-    return problem.residual(build_model(ctx, params), recs)
+    return marker_residual(problem, build_model(ctx, params), recs)
+
+
+def rest_offset(problem, rec) -> np.ndarray:
+    """(K, 3) marker_rest minus the embedded point at rest. A marker slightly off a curved
+    surface that the coarse mesh only approximates is attached to the closest surface point;
+    it moves with that point, at its own rest position (a constant offset is not a material
+    error and no effect could explain it)."""
+    cache = problem.__dict__.setdefault("_rest_offsets", {})
+    key = id(rec)
+    if key not in cache:
+        V = np.asarray(problem.scene.mesh.vertices, float)
+        cache[key] = np.asarray(rec.marker_rest, float) - problem.embedding(rec).apply(V)
+    return cache[key]
+
+
+def predict(problem, model, rec, fast: bool = True) -> np.ndarray:
+    """Predicted markers (T, K, 3) with the rest offsets of `rest_offset`."""
+    return problem.predict(model, rec, fast) + rest_offset(problem, rec)[None]
+
+
+def marker_residual(problem, model, recs=None, fast: bool = True) -> np.ndarray:
+    """Stacked (prediction - observation) over seen markers of `recs` (default train), in units
+    of the object size; a failed simulation gives a large constant residual."""
+    recs = problem.train if recs is None else recs
+    out = []
+    for rec in recs:
+        seen = rec.seen
+        try:
+            r = (predict(problem, model, rec, fast) - rec.markers)[seen].ravel() / problem.object_size
+            if not np.all(np.isfinite(r)):
+                raise RuntimeError("non-finite prediction")
+        except RuntimeError:
+            r = np.full(3 * int(seen.sum()), 1.0)
+        out.append(r)
+    return np.concatenate(out)
+
+
+def gap(problem, model, fast: bool = False) -> dict:
+    """Held-out gap (max and RMS % of object size over the test recordings, or the train ones
+    when there is none), markers predicted as in `predict`, the full Newton solve by default."""
+    from .. import replay
+
+    recs = problem.test or problem.train
+    errs = [replay.trajectory_error(predict(problem, model, rec, fast), rec, problem.object_size)
+            for rec in recs]
+    e = replay.combine_errors(errs)
+    return {"max_error_pct": e["max_error_pct"], "rms_error_pct": e["rms_error_pct"]}
 
 
 
@@ -70,7 +117,7 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
         r = residual_of(problem, ctx, params, recs)
         return r if target is None else r - target
 
-    sizes = [len(FAMILIES[n].parameters) for n in names]
+    sizes = [n_params(n) for n in names]
     split = np.cumsum(sizes)[:-1]
 
     def unpack(v):
@@ -113,7 +160,7 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
             progress(f"refine {'+'.join(names)} it {it + 1}: rss {cost:.3e}")
         if not improved or (len(hist) > 2 and hist[-2] - cost < 0.01 * hist[-2]):
             break
-    dof = sum(sizes) + sum(FAMILIES[n].extra_dof for n in names)
+    dof = sum(n_params(n) + FAMILIES[n].extra_dof for n in names if n != NUISANCE)
     return Fit("+".join(names), unpack(x), cost, dof, evals, hist)
 
 
@@ -136,21 +183,81 @@ def score(rss: float, dof: int, n_eff: float, rss_floor: float) -> float:
 
 
 def locate_region(J_patches: np.ndarray, r0: np.ndarray, allowed=None):
-    """Per-patch log-stiffness change (ridge least squares on the patch sensitivities) and the
-    region: patches deviating from the median change by more than half the largest deviation,
-    on the side of the largest deviation (the median absorbs a uniform offset of the baseline).
+    """Locate a stiffer or softer region from the per-patch sensitivities.
+
+    1. Per-patch log-stiffness change: least squares on the patch sensitivities with a ridge
+       scaled per column (Levenberg/Jacobi: each patch is regularised relative to its own
+       sensitivity, so weakly loaded patches are not shrunk to zero by strongly loaded ones).
+    2. Candidate regions: patches ordered by their deviation from the median change (the
+       median absorbs a uniform offset), on either side; the region is the prefix (top j) whose
+       two-stiffness model (region scale, rest scale; linear in the same sensitivities) leaves
+       the smallest residual. No threshold: the split is chosen by the data.
     `allowed`: bool per column that may belong to the region (default all).
     Returns (region mask over columns, per-column change)."""
     n = J_patches.shape[1]
     allowed = np.ones(n, bool) if allowed is None else np.asarray(allowed, bool)
     JTJ = J_patches.T @ J_patches
-    lam = 0.05 * np.trace(JTJ) / max(len(JTJ), 1)
-    th = -np.linalg.solve(JTJ + lam * np.eye(len(JTJ)), J_patches.T @ r0)
+    d = np.diag(JTJ).copy()
+    lam = 0.05 * d + 1e-9 * np.trace(JTJ) / max(n, 1) + 1e-300
+    th = -np.linalg.solve(JTJ + np.diag(lam), J_patches.T @ r0)
     dev = th - np.median(th)
-    dev[~allowed] = 0.0
-    i = int(np.argmax(np.abs(dev)))
-    sel = allowed & (np.sign(dev) == np.sign(dev[i])) & (np.abs(dev) >= 0.5 * np.abs(dev[i]))
-    return sel, th
+    best = (np.inf, np.zeros(n, bool), np.zeros(2))
+    for side in (1.0, -1.0):
+        cand = np.flatnonzero(allowed & (side * dev > 0))
+        cand = cand[np.argsort(-side * dev[cand])]
+        for j in range(1, len(cand) + 1):
+            sel = np.zeros(n, bool)
+            sel[cand[:j]] = True
+            if sel.all():
+                continue
+            A = np.stack([J_patches[:, sel].sum(axis=1), J_patches[:, ~sel].sum(axis=1)], axis=1)
+            ab, rss = linear_fit(A, r0)
+            if rss < best[0]:
+                best = (rss, sel, ab)
+    if best[1].any() and abs(best[2][1]) > abs(best[2][0]) and allowed.all():
+        # the two-stiffness fit is symmetric in region and rest: the region is the part that
+        # departs from the baseline material, the rest stays near it
+        return ~best[1], th
+    return best[1], th
+
+
+def loo_rss(problem, ctx, params: dict, step: float = 0.07):
+    """Leave-one-recording-out residual of a fitted family: each train recording is predicted
+    with the parameters refit (one Gauss-Newton step from the all-data fit, linearised per
+    recording) on the other recordings only. Fitting noise or one recording's discretisation
+    artefacts does not carry over to another recording; a real effect does. None with fewer
+    than two train recordings. Returns (loo rss, in-sample rss)."""
+    recs = problem.train
+    if len(recs) < 2:
+        return None, None
+    names = list(params)
+    sizes = [len(np.atleast_1d(params[n])) for n in names]
+    x = np.concatenate([np.atleast_1d(np.asarray(params[n], float)) for n in names])
+    split = np.cumsum(sizes)[:-1]
+    unpack = lambda v: {n: p for n, p in zip(names, np.split(v, split))}  # noqa: E731
+    rs, As, gs = [], [], []
+    for rec in recs:
+        r = residual_of(problem, ctx, params, [rec])
+        J = np.zeros((len(r), len(x)))
+        for i in range(len(x)):
+            xp = x.copy()
+            xp[i] += step
+            J[:, i] = (residual_of(problem, ctx, unpack(xp), [rec]) - r) / step
+        rs.append(r)
+        As.append(J.T @ J)
+        gs.append(J.T @ r)
+    insample = float(sum(r @ r for r in rs))
+    total = 0.0
+    for k, rec in enumerate(recs):
+        A = sum(a for j, a in enumerate(As) if j != k)
+        g = sum(b for j, b in enumerate(gs) if j != k)
+        lam = 1e-3 * np.diag(A) + 1e-9 * np.trace(A) / len(x) + 1e-300
+        dx = -np.linalg.solve(A + np.diag(lam), g)
+        if np.abs(dx).max() > 2.0:
+            dx *= 2.0 / np.abs(dx).max()
+        r = residual_of(problem, ctx, unpack(x + dx), [rec])
+        total += float(r @ r)
+    return total, insample
 
 
 def make_patches(mesh, count: int, seed: int = 0) -> np.ndarray:
@@ -161,3 +268,69 @@ def make_patches(mesh, count: int, seed: int = 0) -> np.ndarray:
     count = int(min(count, len(C)))
     km = KMeans(count, n_init=4, random_state=seed).fit(C, sample_weight=np.asarray(mesh.rest_volumes))
     return km.labels_
+
+
+def refine_region(problem, ctx, fit: Fit, target_size: int = 8, rounds: int = 2, progress=None):
+    """Move the located region's boundary at the element level (coarse-to-fine localisation).
+
+    The patches are coarse; their boundary is refined here around the fitted heterogeneity:
+    the elements on either side of the region boundary (sharing a vertex with the other side)
+    are grouped into small spatial groups (k-means, ~target_size elements), the exact effect
+    on the residual of moving each group to the other side is simulated (one simulation each,
+    at the fitted scales), the moves are combined greedily while the predicted residual drops,
+    and the two scales are refit by simulation for the new region; kept only if the simulated
+    residual is lower. Modifies ctx.region; returns the (possibly) improved fit."""
+    from sklearn.cluster import KMeans
+
+    T = np.asarray(ctx.mesh.tets)
+    C = np.asarray(ctx.mesh.vertices)[T].mean(axis=1)
+    nv = ctx.mesh.num_vertices
+    for rnd in range(rounds):
+        region = ctx.region.copy()
+        r_h = residual_of(problem, ctx, fit.params)
+        groups = []
+        for side in (region, ~region):
+            other = np.zeros(nv, bool)
+            other[T[~side].ravel()] = True
+            idx = np.flatnonzero(side & other[T].any(axis=1))
+            if len(idx) == 0:
+                continue
+            k = int(max(1, min(len(idx), round(len(idx) / target_size))))
+            lab = KMeans(k, n_init=2, random_state=rnd).fit(C[idx]).labels_ if k > 1 else np.zeros(len(idx), int)
+            groups += [idx[lab == j] for j in range(k)]
+        D = []
+        for g in groups:
+            ctx.region = region.copy()
+            ctx.region[g] = ~ctx.region[g]
+            D.append(residual_of(problem, ctx, fit.params) - r_h)
+        ctx.region = region
+        cur, chosen = r_h.copy(), []
+        while True:
+            trial = [(float((cur + D[i]) @ (cur + D[i])), i) for i in range(len(D)) if i not in chosen]
+            if not trial:
+                break
+            c, i = min(trial)
+            if c >= float(cur @ cur):
+                break
+            cur = cur + D[i]
+            chosen.append(i)
+        if not chosen:
+            if progress:
+                progress(f"region boundary round {rnd + 1}: no move of {len(groups)} groups lowers the residual")
+            break
+        new = region.copy()
+        for i in chosen:
+            new[groups[i]] = ~new[groups[i]]
+        if new.all() or not new.any():
+            break
+        ctx.region = new
+        cand = refine(problem, ctx, list(fit.params), fit.params, iterations=2)
+        if progress:
+            progress(f"region boundary round {rnd + 1}: {len(chosen)} of {len(groups)} groups moved, "
+                     f"rss {fit.rss:.3e} -> {cand.rss:.3e}")
+        if cand.rss < fit.rss:
+            fit = Fit(fit.name, cand.params, cand.rss, fit.dof, fit.evaluations + cand.evaluations, fit.history)
+        else:
+            ctx.region = region
+            break
+    return fit

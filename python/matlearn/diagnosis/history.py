@@ -18,6 +18,7 @@ import numpy as np
 
 from .. import replay
 from .effects import build_model
+from .fitting import rest_offset
 
 
 def _split_residual(problem, ctx, params, theta, recs):
@@ -32,7 +33,7 @@ def _split_residual(problem, ctx, params, theta, recs):
         m2 = build_model(ctx, p2)
         seen = rec.seen
         try:
-            P = _simulate_split(problem, m1, m2, rec)
+            P = _simulate_split(problem, m1, m2, rec) + rest_offset(problem, rec)[None]
             r = (P - rec.markers)[seen].ravel() / problem.object_size
             if not np.all(np.isfinite(r)):
                 raise RuntimeError
