@@ -179,3 +179,27 @@ def test_locate_region_chooses_the_split_by_the_two_stiffness_fit():
     truth[[8, 9, 10]] = 0.9  # a stiffer region among weakly loaded patches
     sel, _ = fitting.locate_region(Jp, -Jp @ truth)
     assert set(np.flatnonzero(sel)) == {8, 9, 10}
+
+
+def test_a_marker_off_the_surface_keeps_its_rest_offset():
+    from types import SimpleNamespace
+
+    from matlearn.embedding import embed_points
+
+    mesh = meshes.bar(0.1, 0.02, 0.02, (4, 1, 1))
+    V = np.asarray(mesh.vertices)
+    rest = np.array([[0.05, 0.0115, 0.0], [0.08, 0.0, -0.0112], [0.03, 0.002, 0.001]])  # 2 outside, 1 inside
+    emb = embed_points(mesh, rest)
+    T = 4
+    shift = np.array([0.0, 0.002, 0.0])  # the body translated: markers move with it
+    obs = np.broadcast_to(rest + shift, (T, 3, 3)).copy()
+    rec = SimpleNamespace(marker_rest=rest, markers=obs, seen=np.ones((T, 3), bool))
+    problem = SimpleNamespace(scene=SimpleNamespace(mesh=mesh), object_size=0.1, train=[rec],
+                              embedding=lambda r: emb,
+                              predict=lambda m, r, fast=True: np.broadcast_to(emb.apply(V + shift), (T, 3, 3)))
+    off = fitting.rest_offset(problem, rec)
+    np.testing.assert_allclose(off[2], 0, atol=1e-12)  # inside: no offset
+    np.testing.assert_allclose(off[0], [0, 0.0015, 0], atol=1e-12)
+    np.testing.assert_allclose(off[1], [0, 0, -0.0012], atol=1e-12)
+    r = fitting.marker_residual(problem, None)
+    np.testing.assert_allclose(r, 0, atol=1e-12)
