@@ -14,15 +14,18 @@ Public API:
   :func:`refresh_markers` -- the same re-estimated at a new (space-time) trajectory;
 * :func:`as_marker_recordings` -- the learning loop's hook: cloud recordings -> tracked markers;
   :func:`markers_scene` -- a whole scene converted (what `matlearn track` writes);
-* :func:`make_scene_from_scans` -- a scene from a surface mesh, folders of scans and a clamp box.
+* :func:`make_scene_from_scans` -- a scene from a surface mesh, folders of scans and a clamp box;
+* :func:`track_scene`, :func:`cloud_lambda` -- what `matlearn learn` does with cloud recordings:
+  track them (cached) and choose the observation weight from the scan noise and the motion.
 """
 from .correspondence import CloudObservation, Correspondence, SurfaceMatch, correspond, match_surface, surface_samples
 from .ingest import as_marker_recordings, make_scene_from_scans, markers_scene
+from .prepare import cloud_lambda, track_scene
 from .scanner import Camera, ScanSettings, default_cameras, scan_recording, scan_sequence, write_cloud_folder
 from .tracking import TrackOptions, TrackResult, refresh_markers, track, tracked_markers
 
 __all__ = [
     "Camera", "CloudObservation", "Correspondence", "ScanSettings", "SurfaceMatch", "TrackOptions",
     "TrackResult", "as_marker_recordings", "correspond", "default_cameras", "match_surface", "scan_recording",
-    "make_scene_from_scans", "markers_scene", "refresh_markers", "scan_sequence", "surface_samples", "track", "tracked_markers", "write_cloud_folder",
+    "cloud_lambda", "make_scene_from_scans", "markers_scene", "track_scene", "refresh_markers", "scan_sequence", "surface_samples", "track", "tracked_markers", "write_cloud_folder",
 ]

@@ -1,7 +1,11 @@
 """`matlearn learn SCENE --out RUN`: learn an elastic + damping correction from the scene's train
 recordings (method.md sections 4-6), score it on the test recordings, distil it into an MLP, and
 write RUN/model.npz + model.json (for `matlearn simulate --model RUN`), metrics.json,
-convergence.png and error_histograms.png."""
+convergence.png and error_histograms.png.
+
+Recordings may be markers or point clouds (cloud_points/cloud_offsets/cloud_sigma): cloud-only
+recordings are tracked first with the physics-based tracker (progress shown, cached in
+RUN/tracked/ so --resume does not track again) and learned through their tracked markers."""
 from __future__ import annotations
 
 import json
@@ -26,6 +30,7 @@ def run(args) -> int:
     res = learn(scene, out, opts, resume=args.resume, log=log)
     params = res["params"]
     summary = {"scene": str(Path(args.scene).resolve()), "best_iteration": res["best_iteration"],
+               "lambda": res["lambda"],
                "nominal": res["nominal"], "final": res["final"], "wall_s": None}
     mlp = None
     if params is None:
@@ -41,7 +46,8 @@ def run(args) -> int:
 
         if log:
             log("distilling into an MLP 6-6-6-3 ...")
-        X, Y = simulation_samples(scene, params.correction(), scene.recordings_with_role("train"),
+        tscene = res["scene"]  # cloud recordings replaced by their tracked markers
+        X, Y = simulation_samples(tscene, params.correction(), tscene.recordings_with_role("train"),
                                   seed=args.seed)
         mlp, tinfo = train_mlp(X, Y, seed=args.seed)
         summary["distill"] = {**tinfo, **compare(params.correction(), mlp_correction(mlp), X, Y)}
@@ -68,8 +74,9 @@ def register(subparsers) -> None:
     p.add_argument("--iterations", type=int, default=8, help="max outer iterations (default 8)")
     p.add_argument("--resume", action="store_true", help="continue a killed run in --out")
     p.add_argument("--force", action="store_true", help="write into a non-empty --out")
-    p.add_argument("--lambda", dest="lam", type=float, default=1.0,
-                   help="dimensionless observation weight (default 1; 0.01 .. 1e5 work)")
+    p.add_argument("--lambda", dest="lam", type=float, default=None,
+                   help="dimensionless observation weight (default: 1 for markers; for point clouds "
+                        "min(1, a_rms h^2 / sigma_obs) from the scan noise, see docs/point_clouds.md)")
     p.add_argument("--modes", type=int, default=20, help="POD modes r (default 20)")
     p.add_argument("--centers", type=int, default=24, help="RBF centres (default 24)")
     p.add_argument("--no-distill", action="store_true", help="skip the MLP distillation")

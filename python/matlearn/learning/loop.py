@@ -3,13 +3,27 @@ measure the error against the recordings, rebuild the POD basis, solve the space
 fit a new correction; repeat until neither the forward error nor the control-force magnitude
 improves.
 
+Monotone by construction (a trust region on the correction update): a new correction is
+accepted only if its forward *train* error is lower than the current one; otherwise the update
+is shortened (blended towards the current correction, same RBF centres) by the factors in
+`LearnOptions.backtrack`, and when no step lowers the error the loop stops there. So the train
+error sequence never increases and the last iterate is the best. Why: with sparse observations
+(6 % of the surface vertices) the control forces are only loosely determined away from the
+markers and a full fit extrapolates; accepted blindly, the error grew from iteration to
+iteration (bench/visibility.py, markers_6: train 0.18 -> 0.25 -> 0.40 -> 0.66 %).
+
+Point clouds: recordings that have clouds and no markers are tracked first
+(:func:`matlearn.clouds.prepare.track_scene`, cached in `RUN/tracked/`) and learned through
+their tracked markers, with the observation weight chosen from the scan noise and the motion
+(:func:`matlearn.clouds.prepare.cloud_lambda`) unless `lam` is given.
+
 Every iteration is checkpointed (`RUN/checkpoint/iter_<k>.npz` + `RUN/metrics.json`), so a
 killed run continues with `resume=True` from its last finished iteration and gives the same
 result (all steps are deterministic for a given seed; the checkpoint stores the fitted
 correction and the space-time trajectories at full precision).
 
-Decisions (basis, stopping, which iterate to keep) use the *train* recordings only; test
-recordings are scored for the metrics and never fed back.
+Decisions (basis, lambda, accepting an update, stopping, which iterate to keep) use the *train*
+recordings only; test recordings are scored for the metrics and never fed back.
 """
 from __future__ import annotations
 
@@ -20,7 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..clouds.prepare import cloud_lambda, motion_scales, track_scene
+from ..clouds.tracking import TrackOptions
 from ..embedding import embed_points
+from ..recording import load_recording
 from ..replay import initial_state, interpolate_frames, simulate_recording
 from .fit import FitFrames, RbfParams, fit_correction
 from .initial import initial_trajectory
@@ -30,16 +47,18 @@ from .spacetime import build_problem, constrained_vertices, solve_spacetime
 
 @dataclass
 class LearnOptions:
-    """iterations: max outer iterations; lam: dimensionless observation weight; modes: POD
-    modes r; centers: RBF centres; damping: learn the strain-dependent alpha_K change;
-    gn_iterations: Gauss-Newton steps per space-time solve; pod_window: fraction of each
-    trajectory used for the basis; fit_frames: max frames per recording in the fit; ridges:
-    relative Tikhonov weights tried per iteration (the best train error wins); patience: iterations without improvement before stopping;
-    seed: k-means seed; backtrack: a new correction whose train error exceeds this factor times
-    the best so far is halved towards the previous one (at most twice)."""
+    """iterations: max outer iterations; lam: dimensionless observation weight (None: 1 for
+    marker recordings, chosen from the noise for point clouds); modes: POD modes r; centers:
+    RBF centres; damping: learn the strain-dependent alpha_K change; gn_iterations:
+    Gauss-Newton steps per space-time solve; pod_window: fraction of each trajectory used for
+    the basis; fit_frames: max frames per recording in the fit; ridges: relative Tikhonov
+    weights tried per iteration (the best train error wins); patience: iterations without
+    improvement before stopping; seed: k-means seed; backtrack: shortened update steps tried
+    when the full update does not lower the train error; track: tracking options for cloud
+    recordings (None: defaults)."""
 
     iterations: int = 8
-    lam: float = 1.0
+    lam: float | None = None
     modes: int = 20
     centers: int = 24
     damping: bool = True
@@ -49,13 +68,19 @@ class LearnOptions:
     ridges: tuple = (1e-6, 1e-4, 1e-2)
     patience: int = 2
     seed: int = 0
-    backtrack: float = 1.5
+    backtrack: tuple = (0.5, 0.25)
+    track: TrackOptions | None = None
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
             raise ValueError("iterations, modes and centers must be >= 1")
-        if not self.lam > 0:
+        if self.lam is not None and not self.lam > 0:
             raise ValueError(f"lambda must be > 0, got {self.lam}")
+        self.backtrack = tuple(float(t) for t in self.backtrack)
+        if any(not 0 < t < 1 for t in self.backtrack):
+            raise ValueError(f"backtrack steps must lie in (0, 1), got {self.backtrack}")
+        if not self.ridges:
+            raise ValueError("ridges: at least one ridge weight")
 
 
 def robust_initial_state(scene, model, rec, emb):
@@ -110,33 +135,40 @@ class Learner:
     """Runs the loop for one scene into `run_dir`; see the module docstring."""
 
     def __init__(self, scene, run_dir, options: LearnOptions | None = None, log=print):
-        self.scene = scene
         self.run = Path(run_dir)
         self.opt = options or LearnOptions()
         self.log = log or (lambda *a: None)
-        self.train = scene.recordings_with_role("train")
-        self.test = scene.recordings_with_role("test")
-        self.train = [r for r in self.train if r.num_markers > 0]
+        # Cloud-only recordings take the marker path through the tracker (cached in RUN/tracked).
+        scene, self.tracking = track_scene(scene, self.run / "tracked", self.opt.track, self.log,
+                                           progress=log is not None)
+        self.scene = scene
+        self.train = [r for r in scene.recordings_with_role("train") if r.num_markers > 0]
         if not self.train:
-            raise ValueError("the scene has no 'train' recording with markers to learn from")
-        self.test = [r for r in self.test if r.num_markers > 0]
+            raise ValueError("the scene has no 'train' recording with markers or point clouds to learn from")
+        self.test = [r for r in scene.recordings_with_role("test") if r.num_markers > 0]
         mesh = scene.mesh
         self.emb_train = [embed_points(mesh, r.marker_rest) for r in self.train]
         self.emb_test = [embed_points(mesh, r.marker_rest) for r in self.test]
         self.nominal = scene.model()
         self.metrics: list[dict] = []
         self.hist: dict[str, np.ndarray] = {}
+        self.lam: float | None = self.opt.lam if self.opt.lam is not None else (None if self.tracking else 1.0)
+        self.lam_info: dict = {"source": "option" if self.opt.lam is not None else "marker default"}
+        self._evaluated = None  # (params, train errors, sims, test errors) known for the next iteration
+        self._basis_sims = None  # after a rejected update: the candidate's simulations for the basis
 
     # ------------------------------------------------------------------ checkpoints
     def _ckpt(self, k):
         return self.run / "checkpoint" / f"iter_{k:03d}.npz"
 
-    def _save_checkpoint(self, k, params, st_X):
+    def _save_checkpoint(self, k, params, st_X, candidate=None):
         d = self.run / "checkpoint"
         d.mkdir(parents=True, exist_ok=True)
         arrays = {f"st_X{i}": X for i, X in enumerate(st_X)}
         if params is not None:
             arrays.update(params.to_arrays())
+        if candidate is not None:  # a rejected update whose simulations feed the next basis
+            arrays.update(candidate.to_arrays("cand_"))
         tmp = self._ckpt(k).with_suffix(".tmp")
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
@@ -145,9 +177,10 @@ class Learner:
 
     def _write_metrics(self):
         self.run.mkdir(parents=True, exist_ok=True)
-        doc = {"options": asdict(self.opt), "iterations": self.metrics}
+        doc = {"options": asdict(self.opt), "lambda": self.lam, "lambda_choice": self.lam_info,
+               "tracking": self.tracking, "iterations": self.metrics}
         tmp = self.run / "metrics.json.tmp"
-        tmp.write_text(json.dumps(doc, indent=1))
+        tmp.write_text(json.dumps(doc, indent=1, default=str))
         tmp.replace(self.run / "metrics.json")
         with open(self.run / "error_samples.npz", "wb") as f:
             np.savez(f, **self.hist)
@@ -163,15 +196,42 @@ class Learner:
             return None
         k = its[-1]["iteration"]
         self.metrics = [m for m in doc["iterations"] if m["iteration"] <= k]
+        if doc.get("lambda") is not None and self.opt.lam is None:
+            self.lam, self.lam_info = float(doc["lambda"]), doc.get("lambda_choice", {})
         if (self.run / "error_samples.npz").exists():
             with np.load(self.run / "error_samples.npz") as z:
                 self.hist = {key: z[key] for key in z.files if int(key.split("_")[1]) <= k}
         with np.load(self._ckpt(k)) as z:
             params = RbfParams.from_arrays(z) if "rbf_centers" in z.files else None
             st_X = [z[f"st_X{i}"] for i in range(len(self.train))]
+            cand = RbfParams.from_arrays(z, "cand_") if "cand_centers" in z.files else None
+        if cand is not None:
+            self._basis_sims = self._train_error(cand)[2]
         return k + 1, params, st_X
 
     # ------------------------------------------------------------------ one iteration
+    def _choose_lambda(self, sims):
+        """Observation weight for tracked clouds from the nominal model's motion and the noise of
+        the tracked markers (matlearn.clouds.prepare.cloud_lambda); the smallest over the
+        train recordings."""
+        h = self.scene.time_step
+        info = {Path(v["tracked"]).resolve(): v for v in self.tracking.values()}
+        rows = []
+        for path, sim in zip(self.scene.recording_paths("train"), sims):
+            v = info.get(Path(path).resolve())
+            if v is None:  # a marker recording in a mixed scene
+                continue
+            cons, _, _ = constrained_vertices(self.scene, load_recording(path))
+            free = np.setdiff1d(np.arange(self.scene.mesh.num_vertices), cons)
+            ms = motion_scales(sim[1], h, free)
+            lam = cloud_lambda(ms["d_rms_m"], ms["omega_s"], v["sigma_obs_m"], v["frame_dt_s"] or h, h)
+            rows.append({"recording": str(path), **ms, "sigma_obs_m": v["sigma_obs_m"],
+                         "frame_dt_s": v["frame_dt_s"], "lam": lam})
+        self.lam = min([r["lam"] for r in rows], default=1.0)
+        self.lam_info = {"source": "clouds: Wiener cutoff of the space-time smoother, min over train "
+                                   "recordings (matlearn.clouds.prepare.cloud_lambda)", "recordings": rows}
+        self.log(f"observation weight lambda = {self.lam:.3g} (from the scanner noise and the motion)")
+
     def _spacetime(self, model, sims, st_X, k):
         """Space-time for every train recording; returns (fit frames, new st_X, info)."""
         frames, new_X, info = [], [], []
@@ -183,9 +243,11 @@ class Learner:
             else:
                 X0 = st_X[i]
             cons, _, _ = constrained_vertices(self.scene, rec)
-            setup_base = V  # POD on displacements from rest; driven rows are zeroed anyway
-            phi = pod_basis([sim[1], X0], setup_base, cons, self.opt.modes, self.opt.pod_window)
-            setup = build_problem(self.scene, model, rec, phi, self.opt.lam, emb)
+            basis = [sim[1], X0]
+            if self._basis_sims is not None:  # after a rejected update: its motion too
+                basis.append(self._basis_sims[i][1])
+            phi = pod_basis(basis, V, cons, self.opt.modes, self.opt.pod_window)
+            setup = build_problem(self.scene, model, rec, phi, self.lam, emb)
             out = solve_spacetime(setup, X0, iterations=self.opt.gn_iterations)
             fc = out["control_forces"]
             red = fc.reshape(len(fc), -1) @ phi
@@ -193,9 +255,19 @@ class Learner:
             frames.append(FitFrames(out["X"][2::stride], out["V"][2::stride], fc[::stride], phi))
             new_X.append(out["X"])
             info.append({"cost": out["report"]["cost"], "cg_iterations": out["report"]["cg_iterations"],
+                         "step_length": out["report"]["step_length"],
                          "control_force_rms": float(np.sqrt(np.mean(red**2))), "modes": int(phi.shape[1]),
                          "frames": int(len(out["X"])), "wall_s": time.time() - t0})
         return frames, new_X, info
+
+    def _train_error(self, params):
+        """(max train error %, errors, sims) of a correction; inf when it cannot be simulated."""
+        try:
+            model = self.scene.model(params.correction() if params is not None else None)
+            errs, sims = _errors(self.scene, model, self.train, self.emb_train)
+            return max(e.max() for e in errs), errs, sims
+        except RuntimeError:
+            return np.inf, None, None
 
     def run_loop(self, resume: bool = False) -> dict:
         opt = self.opt
@@ -209,99 +281,115 @@ class Learner:
         for m in self.metrics:  # replay the stopping state of resumed iterations
             if m.get("train"):
                 self._update_best(best, m)
-        prev_params = None
-        if start > 1:
-            with np.load(self._ckpt(start - 2)) as z:
-                prev_params = RbfParams.from_arrays(z)
         k = start
         while True:
             t0 = time.time()
-            evaluated = None
-            step = 1.0
-            for attempt in range(4 if params is not None else 1):
-                model = self.scene.model(params.correction() if params is not None else None)
+            model = self.scene.model(params.correction() if params is not None else None)
+            if self._evaluated is not None and self._evaluated[0] is params:
+                tr_err, sims, te_err = self._evaluated[1:]
+            else:  # the nominal model, or a resumed run's last accepted update
+                tr_err, sims = _errors(self.scene, model, self.train, self.emb_train)
+                te_err = None
+            if te_err is None:
                 try:
-                    tr_err, sims = _errors(self.scene, model, self.train, self.emb_train)
-                    worse = max(e.max() for e in tr_err) > opt.backtrack * best["train"]
-                    if params is not None and worse and attempt < 2:
-                        # Much worse than the best iterate: the fit overshot; step back.
-                        self.log(f"iteration {k}: train error {max(e.max() for e in tr_err):.3f}% "
-                                 f"> {opt.backtrack} x best; halving the update")
-                        step *= 0.5
-                        params = _blend(prev_params, params, 0.5)
-                        continue
                     te_err, _ = _errors(self.scene, model, self.test, self.emb_test)
-                    evaluated = True
-                    break
-                except RuntimeError as err:
-                    if params is None:
-                        raise
-                    # The new correction cannot be simulated (divergence): step back towards
-                    # the previous correction (same centres, so parameters blend linearly).
-                    self.log(f"iteration {k}: forward simulation failed ({err}); halving the update")
-                    evaluated = str(err)
-                    step *= 0.5
-                    params = _blend(prev_params, params, 0.5)
-            if evaluated is not True:
-                self.metrics.append({"iteration": k, "failed": evaluated, "train": None, "test": None})
-                self._write_metrics()
-                break
-            if step < 1.0:  # the blended correction is this iteration's result
-                self._save_checkpoint(k - 1, params, st_X)
+                except RuntimeError as err:  # scored only; never a decision input
+                    te_err = []
+                    self.log(f"iteration {k}: a test recording cannot be simulated ({err})")
             m = {"iteration": k, "train": _summary(tr_err), "test": _summary(te_err),
-                 "has_correction": params is not None, "update_step": step}
+                 "has_correction": params is not None}
             for i, e in enumerate(tr_err):
                 self.hist[f"it_{k}_train{i}"] = e
             for i, e in enumerate(te_err):
                 self.hist[f"it_{k}_test{i}"] = e
             self.log(f"iteration {k}: train max {m['train']['max_error_pct']:.3f}%"
                      + (f", test max {m['test']['max_error_pct']:.3f}%" if m["test"] else ""))
-            stop = k >= opt.iterations or (k > 0 and best["stale"] >= opt.patience)
-            if stop:
+            if self.metrics and self.metrics[-1]["iteration"] == k:  # resumed past a stop record
+                self.metrics.pop()
+            if k >= opt.iterations or (k > 0 and best["stale"] >= opt.patience):
+                m["stop"] = "iterations" if k >= opt.iterations else "no improvement"
                 m["wall_s"] = time.time() - t0
                 self.metrics.append(m)
                 self._write_metrics()
                 break
-            frames, st_X, st_info = self._spacetime(model, sims, st_X, k)
+            if self.lam is None:
+                self._choose_lambda(sims)
+            m["lam"] = self.lam
+            frames, new_X, st_info = self._spacetime(model, sims, st_X, k)
             m["spacetime"] = st_info
             m["control_force_rms"] = float(np.sqrt(np.mean([s["control_force_rms"] ** 2 for s in st_info])))
-            prev_params = params
-            centers = (params.centers, params.epsilon) if params is not None else None
-            params, finfo = self._fit(frames, model if params is not None else None, centers, k)
+            current = m["train"]["max_error_pct"]
+            new_params, finfo, evaluated = self._update(frames, params, model, current, k)
+            self._basis_sims = None
             m["fit"] = finfo
             m["wall_s"] = time.time() - t0
             self.log(f"  control forces {m['control_force_rms']:.3e} N (reduced rms), fit residual "
-                     f"{finfo['residual_ratio']:.3f} (ridge {finfo['ridge']:g}), {m['wall_s']:.1f} s")
+                     f"{finfo['residual_ratio']:.3f} (ridge {finfo['ridge']:g}), update step "
+                     f"{finfo['update_step']:g}, {m['wall_s']:.1f} s")
             self.metrics.append(m)
             self._update_best(best, m)
-            self._save_checkpoint(k, params, st_X)
+            if new_params is None:
+                # No step of the update lowers the train error. Keep the correction; the next
+                # iteration starts the space-time solve from this one's trajectories and adds
+                # the rejected candidate's motion to the basis (new information, same model).
+                # After `patience` such iterations without improvement the loop has converged.
+                m["update"] = "rejected"
+                if best["stale"] >= opt.patience or evaluated[1] is None:
+                    m["stop"] = "no improving update"
+                    self._write_metrics()
+                    break
+                self._basis_sims = evaluated[1]
+                self._evaluated = (params, tr_err, sims, te_err)
+                self._save_checkpoint(k, params, new_X, candidate=evaluated[0])
+                st_X = new_X
+            else:
+                m["update"] = "accepted"
+                params, st_X = new_params, new_X
+                self._evaluated = (params, *evaluated, None)
+                self._save_checkpoint(k, params, st_X)
             k += 1
         return self.finish()
 
-    def _fit(self, frames, current_model, centers, k):
-        """Fit one correction per ridge weight in options.ridges (same centres) and keep the one
-        whose forward simulation best matches the *train* recordings (model selection on
-        training data only)."""
+    def _update(self, frames, params, current_model, current_err, k):
+        """The next correction: fit one candidate per ridge weight in options.ridges (same
+        centres) and take the one with the lowest forward *train* error (model selection on
+        training data only). The update is accepted only if it lowers the train error;
+        otherwise it is shortened (blended towards the current correction) by the factors in
+        options.backtrack, and when no step lowers the error the loop has converged (returns
+        None). Returns (params or None, info, (errors, sims) of the accepted params)."""
         opt = self.opt
         cands = []
+        centers = (params.centers, params.epsilon) if params is not None else None
         for ridge in opt.ridges:
-            p, info = fit_correction(self.nominal, frames, opt.centers, current_model=current_model,
-                                     damping=opt.damping, ridge=ridge, seed=opt.seed + k,
-                                     centers=centers)
+            p, info = fit_correction(self.nominal, frames, opt.centers,
+                                     current_model=current_model if params is not None else None,
+                                     damping=opt.damping, ridge=ridge, seed=opt.seed + k, centers=centers)
             centers = (p.centers, p.epsilon)
             info["ridge"] = ridge
-            if len(opt.ridges) == 1:
-                return p, info
-            try:
-                err = max(e.max() for e in _errors(self.scene, self.scene.model(p.correction()),
-                                                   self.train, self.emb_train)[0])
-            except RuntimeError:
-                err = np.inf
+            err, errs, sims = self._train_error(p)
             info["train_max_error_pct"] = float(err)
-            cands.append((err, len(cands), p, info))
-        err, _, p, info = min(cands, key=lambda c: (c[0], c[1]))
-        info["ridge_candidates"] = [{"ridge": c[3]["ridge"], "train_max_error_pct": c[0]} for c in cands]
-        return p, info
+            cands.append((err, len(cands), p, info, errs, sims))
+        cands_best = min(cands, key=lambda c: (c[0], c[1]))
+        err, _, p, info, errs, sims = cands_best
+        info["ridge_candidates"] = [{"ridge": c[3]["ridge"], "train_max_error_pct": float(c[0])} for c in cands]
+        info["update_step"] = 1.0
+        tried = [{"step": 1.0, "train_max_error_pct": float(err)}]
+        for t in opt.backtrack:
+            if err < current_err:
+                break
+            info["update_step"] = t
+            q = _blend(params, p, t)
+            err, errs, sims = self._train_error(q)
+            tried.append({"step": t, "train_max_error_pct": float(err)})
+            self.log(f"  update does not lower the train error ({tried[-2]['train_max_error_pct']:.3f}% >= "
+                     f"{current_err:.3f}%); step {t:g}: {err:.3f}%")
+            p = q
+        info["steps_tried"] = tried
+        if not err < current_err:
+            info["update_step"] = 0.0
+            full = cands_best[2]
+            return None, info, (full, cands_best[5])
+        return p, info, (errs, sims)
 
     @staticmethod
     def _update_best(best, m):
@@ -316,17 +404,20 @@ class Learner:
 
     def finish(self) -> dict:
         """Pick the evaluated iterate with the lowest train error; return the summary."""
-        best = min((m for m in self.metrics if m.get("train")), key=lambda m: m["train"]["max_error_pct"])
+        best = min((m for m in self.metrics if m.get("train")),
+                   key=lambda m: (m["train"]["max_error_pct"], -m["iteration"]))
         k = best["iteration"]
         params = None
         if k > 0:
             with np.load(self._ckpt(k - 1)) as z:
-                params = RbfParams.from_arrays(z)
+                params = RbfParams.from_arrays(z) if "rbf_centers" in z.files else None
         return {"best_iteration": k, "params": params, "metrics": self.metrics,
-                "nominal": self.metrics[0], "final": best}
+                "nominal": self.metrics[0], "final": best, "lambda": self.lam,
+                "scene": self.scene, "tracking": self.tracking}
 
 
 def learn(scene, run_dir, options: LearnOptions | None = None, resume: bool = False, log=print) -> dict:
     """Run the learning loop; returns dict(best_iteration, params (RbfParams or None when the
-    nominal model was best), metrics, nominal, final)."""
+    nominal model was best), metrics, nominal, final, lambda (the observation weight used),
+    scene (the scene learned from: cloud recordings replaced by tracked markers), tracking)."""
     return Learner(scene, run_dir, options, log).run_loop(resume)

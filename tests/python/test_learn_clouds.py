@@ -1,0 +1,117 @@
+"""`learn` on a scanned scene exactly as on markers: a cloud-only train recording (virtual
+single-view scans with noise, outliers and dropped frames) is tracked by `learn` itself, cached
+in the run folder (a resumed run does not track again), learned with the observation weight
+chosen from the scan noise, and the learned model cuts the held-out error (scored on an exact
+marker recording of a different load) by a stated factor."""
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from matlearn import cli, meshes
+from matlearn.clouds.prepare import cloud_lambda, track_scene
+from matlearn.clouds.scanner import ScanSettings, default_cameras, scan_recording
+from matlearn.learning import LearnOptions, learn
+from matlearn.materials import Damping, Material
+from matlearn.recording import load_recording
+from matlearn.scene import load_scene, save_scene
+from matlearn.synthetic import Motion, make_case
+
+L = 0.08
+NOISE = 2e-4  # m, 0.23 % of the object size
+
+
+@pytest.fixture(scope="module")
+def scanned(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scanned")
+    mesh = meshes.bar(L, 0.02, 0.02, cells=(5, 1, 1))
+    tip = [[L - 0.011, -1, -1], [1, 1, 1]]
+    motions = [Motion("release", "train", 0.1, load={"box": tip, "force": [0, 0.25, 0.08]}),
+               Motion("release", "test", 0.1, load={"box": tip, "force": [0, 0.4, -0.05]})]
+    path = make_case(root, "bar", mesh, Material("neo_hookean", 2e5, 0.43, 1000.0), Damping(0.0, 0.004),
+                     mesh, Material("corotated", 3.5e5, 0.43, 1000.0), Damping(0.0, 0.004),
+                     [[-1, -1, -1], [1e-4, 1, 1]], motions, marker_fraction=1.0, frame_rate=500.0, seed=3)
+    sc = load_scene(path)
+    rec = load_recording(sc.recording_paths("train")[0])
+    V = np.asarray(sc.mesh.vertices)
+    d, idx = cKDTree(V).query(rec.marker_rest)
+    assert d.max() < 1e-9  # dense markers sit on the surface vertices: the true surface
+    X = np.repeat(V[None], rec.num_frames, axis=0)
+    X[:, idx] = rec.markers
+    settings = ScanSettings(noise=NOISE, outlier_fraction=0.01, drop_fraction=0.05, seed=1)
+    scan_recording(X, rec.times, np.asarray(sc.mesh.surface_faces), default_cameras(V, 1), settings,
+                   path=root / "train_scan.npz", at_rest_initially=rec.at_rest_initially)
+    recs = [(root / "train_scan.npz", "train")] + [(p, r) for p, r in sc.recordings if r == "test"]
+    from dataclasses import replace
+
+    return save_scene(replace(sc, recordings=recs), root / "scene.toml")
+
+
+def test_learn_tracks_clouds_chooses_lambda_and_cuts_held_out_error(scanned, tmp_path):
+    sc = load_scene(scanned)
+    assert load_recording(sc.recording_paths("train")[0]).num_markers == 0  # clouds only
+    opts = LearnOptions(iterations=2, modes=12, centers=12, ridges=(1e-6,))
+    res = learn(sc, tmp_path / "run", opts, log=None)
+    (info,) = res["tracking"].values()
+    assert info["role"] == "train" and not info["cached"]
+    # lambda from the scan noise and the motion, below the marker default, as documented.
+    rows = res["metrics"][0]["lam"], json.loads((tmp_path / "run" / "metrics.json").read_text())["lambda_choice"]
+    (row,) = rows[1]["recordings"]
+    # The scanner accuracy stated in the recording, averaged over the points supporting a vertex.
+    assert info["sigma_scan_m"] == NOISE and info["points_per_seen_vertex"] > 2
+    assert info["sigma_obs_m"] == pytest.approx(NOISE / np.sqrt(info["points_per_seen_vertex"]))
+    # Tracked markers average many points: their frame-to-frame noise is far below the scanner's.
+    assert 0 < info["tracked_marker_noise_m"] < NOISE / 3
+    assert res["lambda"] == pytest.approx(cloud_lambda(row["d_rms_m"], row["omega_s"], info["sigma_obs_m"],
+                                                       info["frame_dt_s"], sc.time_step))
+    assert 1e-3 < res["lambda"] < 1.0
+    nominal = res["nominal"]["test"]["max_error_pct"]
+    learned = res["final"]["test"]["max_error_pct"]
+    print("held-out max error nominal", nominal, "learned", learned, "lambda", res["lambda"])
+    assert nominal > 2.0
+    # Stated factor: learning from single-view scans (2 iterations) cuts the held-out max error,
+    # on a larger load than the train recording's, by at least 2.5x (measured 2.9x; train 4.3x;
+    # exact markers on half the surface vertices: 8x, test_learning_e2e).
+    assert learned < nominal / 2.5, (nominal, learned)
+    # The learn loop never accepts an update that raises the train error.
+    train = [m["train"]["max_error_pct"] for m in res["metrics"]]
+    assert all(b <= a for a, b in zip(train, train[1:])) and train[-1] < train[0] / 3, train
+    # Resume: the tracked clouds are reused from the run folder, not tracked again.
+    tracked = tmp_path / "run" / "tracked"
+    stamp = {p.name: p.stat().st_mtime_ns for p in tracked.iterdir()}
+    again = learn(sc, tmp_path / "run", opts, resume=True, log=None)
+    assert all(v["cached"] for v in again["tracking"].values())
+    assert {p.name: p.stat().st_mtime_ns for p in tracked.iterdir()} == stamp
+    assert again["final"]["test"]["max_error_pct"] == pytest.approx(learned, rel=1e-9)
+
+
+def test_tracking_cache_is_invalidated_when_the_clouds_change(scanned, tmp_path):
+    sc = load_scene(scanned)
+    new, info = track_scene(sc, tmp_path / "t")
+    (v,) = info.values()
+    assert not v["cached"] and load_recording(new.recording_paths("train")[0]).num_markers > 0
+    assert all(v["cached"] for v in track_scene(sc, tmp_path / "t")[1].values())
+    # Same file name, different clouds (another noise seed): tracked again.
+    rec = load_recording(sc.recording_paths("train")[0])
+    rec.cloud_points = rec.cloud_points + 1e-5
+    from matlearn.recording import save_recording
+
+    p = tmp_path / "moved" / "train_scan.npz"
+    save_recording(rec, p)
+    from dataclasses import replace
+
+    moved = replace(sc, recordings=[(p, "train")])
+    (w,) = track_scene(moved, tmp_path / "t")[1].values()
+    assert not w["cached"]
+
+
+def test_cli_learns_from_a_cloud_scene(scanned, tmp_path):
+    out = tmp_path / "cli"
+    rc = cli.main(["learn", str(scanned), "--out", str(out), "--iterations", "1", "--modes", "10",
+                   "--centers", "8", "--no-distill", "--quiet"])
+    assert rc == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["lambda"] < 1.0
+    assert summary["final"]["test"]["max_error_pct"] < summary["nominal"]["test"]["max_error_pct"]
+    assert any(p.name.endswith("_tracked.npz") for p in (out / "tracked").iterdir())
