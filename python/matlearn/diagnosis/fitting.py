@@ -334,3 +334,31 @@ def refine_region(problem, ctx, fit: Fit, target_size: int = 8, rounds: int = 2,
             ctx.region = region
             break
     return fit
+
+
+def loo_rss_region(problem, ctx, params: dict, J_patches, r0, labels):
+    """Leave-one-recording-out residual of the heterogeneity family with the region located
+    again on the other recordings only (patch level), its two scales refit on them by
+    simulation, and the left-out recording predicted: the choice of the region is tested too,
+    not only its scales. None with fewer than two train recordings."""
+    recs = problem.train
+    if len(recs) < 2:
+        return None
+    sizes = np.array([3 * int(rec.seen.sum()) for rec in recs])
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    region0 = ctx.region.copy()
+    start = {"heterogeneity": params["heterogeneity"]}
+    total = 0.0
+    try:
+        for k, rec in enumerate(recs):
+            rows = np.ones(len(r0), bool)
+            rows[starts[k]:starts[k + 1]] = False
+            sel, _ = locate_region(J_patches[rows], r0[rows])
+            ctx.region = np.isin(labels, np.flatnonzero(sel))
+            others = [r for j, r in enumerate(recs) if j != k]
+            fit = refine(problem, ctx, ["heterogeneity"], start, iterations=2, recs=others)
+            r = residual_of(problem, ctx, fit.params, [rec])
+            total += float(r @ r)
+    finally:
+        ctx.region = region0
+    return total

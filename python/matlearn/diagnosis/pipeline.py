@@ -187,15 +187,26 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     significant = rss0 > GAP_FACTOR * rss_floor
     verdict, selected = [], None
     cv = {}
+
+    def cv_of(name, fit, relocate=False):
+        """Leave-one-recording-out residual of a fitted family (cached). relocate: a located
+        region is located again per fold (the location is tested too; a location needs both
+        kinds of motion, so this is used only where a gap is marginal)."""
+        key = name + ("/relocated" if relocate and name == "heterogeneity" else "")
+        if key not in cv:
+            if key == "heterogeneity/relocated":
+                cv[key] = fitting.loo_rss_region(P, ctx, fit.params, Jp, r0, labels)
+            else:
+                cv[key] = fitting.loo_rss(P, ctx, fit.params)[0]
+        return cv[key]
+
     if above:
-        best = _resolve_nested(P, ctx, ranked, cv, n_eff, rss_floor, say)
+        best = _resolve_nested(ranked, cv_of, rss_floor, say)
         _sort(ranked)
         fit = best["_fit"]
         ok = fit is not None and _explained_excess(fit.rss, rss0, rss_floor) >= EXPLAINED_MIN
         if ok and not significant:
-            if best["name"] not in cv:
-                cv[best["name"]] = fitting.loo_rss(P, ctx, fit.params)[0]
-            loo = cv[best["name"]]
+            loo = cv_of(best["name"], fit, relocate=True)
             carried = loo is None or rss0 - loo >= 0.5 * (rss0 - fit.rss)
             ok = 1.0 - fit.rss / rss0 >= EXPLAINED_MIN and carried
             say(f"marginal gap ({rss0 / rss_floor:.2f} x floor): {best['name']} explains "
@@ -338,7 +349,7 @@ def _sort(rows):
     return rows
 
 
-def _resolve_nested(P, ctx, ranked, cv, n_eff, floor, say):
+def _resolve_nested(ranked, cv_of, floor, say):
     """The best-ranked family, with a nested pair decided on evidence: the larger family (e.g.
     strain-dependent damping, which contains Rayleigh damping) is preferred only when both its
     information criterion and its leave-one-recording-out residual beat the smaller one's
@@ -353,15 +364,12 @@ def _resolve_nested(P, ctx, ranked, cv, n_eff, floor, say):
     if pair is None:
         return best
     big, small = pair
-    for r in pair:
-        if r["name"] not in cv:
-            cv[r["name"]] = fitting.loo_rss(P, ctx, r["_fit"].params)[0]
+    lb, ls = (cv_of(r["name"], r["_fit"]) for r in pair)
     # the extra parameters of the larger family may fit discretisation error on top of what the
     # smaller one does: its gain must exceed the floor, and its criterion and cross-validation
     # must agree
     gain = small["rss"] - big["rss"]
     by_score = big["score"] < small["score"] and gain > floor
-    lb, ls = cv[big["name"]], cv[small["name"]]
     by_cv = by_score if lb is None else lb < ls
     say(f"nested {big['name']} vs {small['name']}: score {big['score']:.1f} vs {small['score']:.1f}, "
         f"rss gain {gain:.3e} (floor {floor:.3e}), leave-one-recording-out rss {lb} vs {ls}")
