@@ -40,19 +40,14 @@ void RbfCorrection::evaluate(const MatX3& Fh, const MatX3&, CorrectionOutput& ou
     Vec3 p = A_ * (s - Vec3::Ones()) + b_;
     Mat3 J = A_;
     double da = a0_;
-    // Kernels at the clamped stretch; d(clamp)/ds is 1 inside the box, 0 outside.
-    Vec3 sc = s, inside = Vec3::Ones();
-    if (box) {
-      sc = s.cwiseMax(lo_).cwiseMin(hi_);
-      for (int i = 0; i < 3; ++i) inside[i] = (s[i] < lo_[i] || s[i] > hi_[i]) ? 0.0 : 1.0;
-    }
+    const Vec3 sc = box ? Vec3(s.cwiseMax(lo_).cwiseMin(hi_)) : s;
+    Vec3 g;
+    double phi_c = 0;
     for (int k = 0; k < c_.rows(); ++k) {
-      const Vec3 d = sc - c_.row(k).transpose();
-      const double phi = std::sqrt(d.squaredNorm() + eps_ * eps_);
       const Vec3 w = w_.row(k).transpose();
-      p += w * phi;
-      J += w * (d.cwiseProduct(inside) / phi).transpose();
-      if (damp) da += wa_[k] * phi;
+      p += w * extended_kernel(s, sc, c_.row(k).transpose(), eps_, &g, &phi_c);
+      J += w * g.transpose();
+      if (damp) da += wa_[k] * phi_c;
     }
     out.dPh.row(e) = p.transpose();
     out.d_dFh[e] = J;

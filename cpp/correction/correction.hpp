@@ -1,4 +1,5 @@
 #pragma once
+#include <cmath>
 #include <memory>
 #include <vector>
 
@@ -28,9 +29,12 @@ class Correction {
 ///   dPh(Fh) = A (Fh - 1) + b + sum_k w_k phi(|Fh - c_k|),   phi(r) = sqrt(r^2 + eps^2)
 ///   dalpha(Fh) = a0 + sum_k wa_k phi(|Fh - c_k|)
 /// centers (c x 3), weights (c x 3), linear A (3 x 3), bias b (3), alpha_weights (c), alpha_bias.
-/// Optional box [lower, upper] (3 each, or both empty): the kernels see the stretches clamped to
-/// the box (the hull of the training stretches), so outside it the RBF part stays at its boundary
-/// value and only the linear part extrapolates (continuous, bounded RBF contribution).
+/// Optional box [lower, upper] (3 each, or both empty; the hull of the training stretches):
+/// outside it each elastic kernel continues linearly with its slope at the nearest box point sc,
+///   g_k(s) = phi(|sc - c_k|) + (sc - c_k).(s - sc) / phi(|sc - c_k|),
+/// so the correction extrapolates to first order from the edge of the data (continuous, growth
+/// at most linear, slope = the edge slope); the damping kernels are evaluated at sc (constant
+/// beyond the box).
 class RbfCorrection final : public Correction {
  public:
   RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bias, VecX alpha_weights,
@@ -45,6 +49,20 @@ class RbfCorrection final : public Correction {
   double a0_, eps_;
   VecX lo_, hi_;
 };
+
+/// Elastic kernel g(s) of RbfCorrection (box extension above) and its gradient dg/ds.
+/// sc: s clamped to the box (= s without one); also returns phi(|sc - c|) for the damping part.
+inline double extended_kernel(const Vec3& s, const Vec3& sc, const Vec3& c, double eps,
+                              Vec3* grad, double* phi_clamped) {
+  const Vec3 d = sc - c, delta = s - sc;
+  const double phi = std::sqrt(d.squaredNorm() + eps * eps);
+  const double dd = d.dot(delta);
+  if (phi_clamped) *phi_clamped = phi;
+  if (grad)
+    for (int i = 0; i < 3; ++i)
+      (*grad)[i] = delta[i] != 0.0 ? d[i] / phi : d[i] / phi * (1.0 - dd / (phi * phi));
+  return phi + dd / phi;
+}
 
 /// Dense layer of an MLP: y = W x + b (W is out x in); batch norm folded in at export.
 struct DenseLayer {

@@ -9,19 +9,20 @@ namespace matlearn::learning {
 
 namespace {
 
-/// Kernel values phi_k(clamp(s)) for the rows of S (m x 3) -> (m x c).
-MatX kernels(const MatX3& S, const RbfFeatures& rbf) {
+/// Elastic kernels g_k(s) (extended beyond the box, RbfCorrection) and damping kernels
+/// phi_k(clamp(s)) for the rows of S (m x 3) -> (m x c) each.
+void kernels(const MatX3& S, const RbfFeatures& rbf, MatX& G, MatX& Pa) {
   const int m = S.rows(), c = rbf.centers.rows();
   const bool box = rbf.lower.size() == 3;
-  MatX P(m, c);
-  const double e2 = rbf.epsilon * rbf.epsilon;
+  G.resize(m, c);
+  Pa.resize(m, c);
   for (int e = 0; e < m; ++e) {
-    Vec3 s = S.row(e).transpose();
-    if (box) s = s.cwiseMax(rbf.lower).cwiseMin(rbf.upper);
+    const Vec3 s = S.row(e).transpose();
+    const Vec3 sc = box ? Vec3(s.cwiseMax(rbf.lower).cwiseMin(rbf.upper)) : s;
     for (int k = 0; k < c; ++k)
-      P(e, k) = std::sqrt((s - rbf.centers.row(k).transpose()).squaredNorm() + e2);
+      G(e, k) = correction::extended_kernel(s, sc, rbf.centers.row(k).transpose(), rbf.epsilon,
+                                            nullptr, &Pa(e, k));
   }
-  return P;
 }
 
 MatX3 frame_rows(const MatX3& A, int j, int n) { return A.middleRows(long(j) * n, n); }
@@ -74,8 +75,9 @@ NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model
       if (free_dofs[i]) keep.push_back(i);
   const int rows = basis ? int(phi.cols()) : int(keep.size());
   const int ne = 3 * (c + 3), p = ne + (damping ? c + 1 : 0);
-  const MatX3 one = MatX3::Ones(1, 3);
-  const VecX rest_phi = kernels(one, rbf).row(0).transpose();
+  MatX rest_g, rest_a;
+  kernels(MatX3::Ones(1, 3), rbf, rest_g, rest_a);
+  const VecX rest_phi = rest_g.row(0).transpose();
 
   NormalEquations out;
   out.N.setZero(p, p);
@@ -86,9 +88,10 @@ NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model
   for (long j = 0; j < frames; ++j) {
     const MatX3 x = frame_rows(X, int(j), n), v = frame_rows(V, int(j), n);
     const MatX3 S = S_all.middleRows(j * m, m);
-    const MatX P = kernels(S, rbf);
+    MatX Pe, P;
+    kernels(S, rbf, Pe, P);
     MatX feat(m, c + 3);
-    feat.leftCols(c) = P.rowwise() - rest_phi.transpose();
+    feat.leftCols(c) = Pe.rowwise() - rest_phi.transpose();
     feat.rightCols(3) = S.array() - 1.0;
     const SpMat B = nominal.force_map(x);
     VecX y = Eigen::Map<const VecX>(FC.data() + j * n * 3, 3 * n);

@@ -4,8 +4,9 @@
 ///
 ///   unknowns theta = [w_0 A_0 | w_1 A_1 | w_2 A_2 | wa a0]   (per principal stress component
 ///   k: c RBF weights then the row k of the linear part; then the damping weights and bias)
-///   features per element: phi_k(clamp(Fh)) - phi_k(clamp(1)) and Fh - 1 (elastic),
-///                         phi_k(clamp(Fh)) and 1 (damping, times the stiffness-damping map)
+///   features per element: g_k(Fh) - g_k(1) and Fh - 1 (elastic; g_k the box-extended kernel
+///                         of RbfCorrection), phi_k(clamp(Fh)) and 1 (damping, times the
+///                         stiffness-damping map)
 ///   rows: P^T (B_j dPh + G_j dalpha) = P^T (fc_j + f_corr,current(x_j, v_j))
 ///
 /// with P the basis (3#V x r) or, when it has no columns, the selection of the free DOFs.
@@ -17,7 +18,7 @@
 namespace matlearn::learning {
 
 /// RBF feature layout shared with RbfCorrection: centres (c x 3), kernel width, and the box
-/// [lower, upper] the stretches are clamped to before the kernels (empty: no clamping).
+/// [lower, upper] beyond which the kernels are extended (RbfCorrection; empty: no box).
 struct RbfFeatures {
   MatX3 centers;
   double epsilon = 0.05;

@@ -5,11 +5,13 @@ The correction is an RBF model over principal stretches Fh (RbfCorrection in C++
     dPh(Fh)    = A (Fh - 1) + b + sum_k w_k phi_k(Fh),   phi_k(Fh) = sqrt(|Fh - c_k|^2 + eps^2)
     dalpha(Fh) = a0 + sum_k wa_k phi_k(Fh)                 (change of the stiffness-damping alpha_K)
 
-Centres c_k come from k-means over the principal stretches of all elements and frames. The
-kernels see the stretch clamped to the box of the centres widened by eps (`RbfParams.box`): the
-RBF part is only trusted where it has centres; outside, it keeps its boundary value and only
-the linear part A (Fh - 1) extrapolates, so a correction evaluated beyond the training
-stretches stays continuous and grows at most linearly. The bias
+Centres c_k come from k-means over the principal stretches of all elements and frames.
+Extrapolation: the RBF part is only trusted in the box of the centres widened by eps
+(`RbfParams.box`, about the hull of the fitted stretches); outside it every elastic kernel is
+replaced by its first-order extension from the nearest box point (`rbf_kernel`), so beyond the
+training stretches the correction continues linearly with its slope at the edge of the data
+(continuous, growth at most linear, no runaway of the kernels' far field); the damping kernels
+are held at their box value (constant alpha change). The bias
 is tied to the weights, b = -sum_k w_k phi_k(1), so the rest shape stays stress-free (the truth
 and the nominal law are both stress-free at rest). Damping is passive by construction: the C++
 model clamps alpha_K + dalpha at 0 per element.
@@ -86,13 +88,19 @@ def centers_box(centers: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray
     return C.min(axis=0) - eps, C.max(axis=0) + eps
 
 
-def rbf_kernel(Fh: np.ndarray, centers: np.ndarray, eps: float, box=(None, None)) -> np.ndarray:
-    """phi_k(Fh) = sqrt(|clamp(Fh) - c_k|^2 + eps^2), (m, c); box (lower, upper) or Nones."""
+def rbf_kernel(Fh: np.ndarray, centers: np.ndarray, eps: float, box=(None, None),
+               damping: bool = False) -> np.ndarray:
+    """Elastic kernels (m, c): phi_k(Fh) = sqrt(|Fh - c_k|^2 + eps^2) inside box = (lower,
+    upper) (or everywhere for Nones); outside, the first-order extension from the nearest box
+    point sc, phi_k(sc) + (sc - c_k).(Fh - sc) / phi_k(sc). damping: the damping kernels
+    phi_k(sc) instead (constant beyond the box)."""
     Fh = np.asarray(Fh, float)
-    if box[0] is not None:
-        Fh = np.clip(Fh, box[0], box[1])
-    d2 = ((Fh[:, None, :] - centers[None]) ** 2).sum(-1)
-    return np.sqrt(d2 + eps * eps)
+    sc = np.clip(Fh, box[0], box[1]) if box[0] is not None else Fh
+    d = sc[:, None, :] - centers[None]
+    phi = np.sqrt((d ** 2).sum(-1) + eps * eps)
+    if damping:
+        return phi
+    return phi + (d * (Fh - sc)[:, None, :]).sum(-1) / phi
 
 
 def choose_centers(Fh_samples: np.ndarray, num_centers: int, seed: int = 0,
