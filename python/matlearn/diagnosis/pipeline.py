@@ -5,9 +5,11 @@ Steps (method.md section 9):
    discretisation from re-simulating the nominal model on a once-refined mesh);
 2. where: control forces of a marker-following constrained simulation -> element shares,
    regions, frames, regimes;
-3. which: sensitivities of every family (and of spatial patches, which locate a heterogeneity),
-   cheap linear fits, simulation refinement of the most promising families, BIC ranking,
-   confounding, forward selection of further effects, history-dependence test;
+3. which: sensitivities of every family (and of spatial patches, which locate a heterogeneity,
+   refined at the element level), cheap linear fits, simulation refinement of the most promising
+   families (with the discretisation offset as a bounded nuisance), BIC ranking, nested pairs
+   decided by gain beyond the floor + BIC + leave-one-recording-out, confounding, forward
+   selection of further effects, a joint refit of the verdict, history-dependence test;
 4. how much: the held-out (test) gap before and after adding the verdict's effects one by one.
 """
 from __future__ import annotations
