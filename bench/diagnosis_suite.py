@@ -3,7 +3,7 @@
 For every effect of the vocabulary a synthetic case whose truth has it (simulated on a finer mesh
 than the model's, so a discretisation gap exists as with real data), a control case without any
 effect and two cases combining two effects; the cases (shapes, truths, lab-like release / drop /
-tap motions) are defined in bench/diagnosis_cases.py. Nothing in matlearn.diagnosis is told the
+tap motions) are defined in bench/diagnosis_suite_cases.py. Nothing in matlearn.diagnosis is told the
 effect or tuned to a case.
 
     python bench/diagnosis_suite.py [--work DIR] [--only NAME ...] [--fresh] [--rediagnose]
@@ -24,11 +24,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
+# 2 cores shared by several jobs: threaded BLAS (CHOLMOD's supernodal factorisations) spins and
+# runs up to ~10x slower under load; one thread per process.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np  # noqa: E402
 
 from matlearn.diagnosis import diagnose
 from matlearn.materials import Damping, Material
@@ -37,7 +41,7 @@ from matlearn.synthetic import make_case
 
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
-from diagnosis_cases import (NOMINAL_DAMPING, build_motions, build_truth, make_shape,  # noqa: E402
+from diagnosis_suite_cases import (NOMINAL_DAMPING, build_motions, build_truth, make_shape,  # noqa: E402
                              named_specs, random_specs)
 
 RETRY_STEPS = (12, 5, 20, 8)  # the truth's static hold is sensitive to its load increments

@@ -18,6 +18,7 @@ void define_mesh(py::module_& m);
 void define_observation(py::module_& m);
 void define_spacetime(py::module_& m);
 void define_fit(py::module_& m);
+void define_replay(py::module_& m);
 
 /// Check a numpy array is (rows x cols) (rows < 0: any) and convert to a row-major double matrix.
 template <int C>

@@ -9,6 +9,7 @@ PYBIND11_MODULE(_core, m) {
   matlearn::bindings::define_fem(fem);
   auto time = m.def_submodule("time", "backward Euler, constrained stepping, statics");
   matlearn::bindings::define_time(time);
+  matlearn::bindings::define_replay(time);
   // Space-time optimisation builds on the FEM model (forces and nominal tangents).
   auto st = m.def_submodule("spacetime", "sparse reduced space-time optimisation, control forces");
   matlearn::bindings::define_spacetime(st);

@@ -1,4 +1,4 @@
-"""The diagnosis benchmark's case builder (bench/diagnosis_cases.py, bench/diagnosis_suite.py):
+"""The diagnosis benchmark's case builder (bench/diagnosis_suite_cases.py, bench/diagnosis_suite.py):
 truths really carry their effect, motions are lab-like, the random set is a function of its seed."""
 import json
 import sys
@@ -10,7 +10,7 @@ import pytest
 BENCH = Path(__file__).resolve().parents[2] / "bench"
 sys.path.insert(0, str(BENCH))
 
-import diagnosis_cases as dc  # noqa: E402
+import diagnosis_suite_cases as dc  # noqa: E402
 import diagnosis_suite as ds  # noqa: E402
 from matlearn import replay  # noqa: E402
 from matlearn.scene import load_scene  # noqa: E402

@@ -83,14 +83,15 @@ def _capsule(radius, length, count, max_volume):
 
 def make_shape(shape: dict):
     """(model mesh, truth mesh, clamp box, tip box, axis (3,), length along the axis).
-    shape: {"kind": "bar"|"plate", "L", "W", "H", "cells"} | {"kind": "capsule", "r", "L"} |
+    shape: {"kind": "bar"|"plate", "L", "W", "H", "cells", optional "truth_factor" (1.5)} | {"kind": "capsule", "r", "L"} |
     {"kind": "sphere", "r"}. Bars/plates lie along +x from a clamp at x = 0; capsules along x,
     clamped at their -x cap; spheres clamped at the bottom (-y, against gravity)."""
     kind = shape["kind"]
     if kind in ("bar", "plate"):
         L, W, H, cells = shape["L"], shape["W"], shape["H"], tuple(shape["cells"])
         model = meshes.bar(L, W, H, cells)
-        truth = meshes.bar(L, W, H, tuple(int(np.ceil(1.5 * c)) for c in cells))
+        k = shape.get("truth_factor", 1.5)
+        truth = meshes.bar(L, W, H, tuple(int(np.ceil(k * c)) for c in cells))
         return (model, truth, [[-BIG, -BIG, -BIG], [1e-6, BIG, BIG]],
                 [[0.8 * L, -BIG, -BIG], [BIG, BIG, BIG]], np.array([1.0, 0, 0]), L)
     if kind == "capsule":

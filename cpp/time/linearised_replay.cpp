@@ -1,0 +1,159 @@
+#include "time/linearised_replay.hpp"
+
+#include <cmath>
+#include <sstream>
+
+namespace matlearn::time {
+
+LinearisedReplay::LinearisedReplay(const fem::Model& mesh_model, const VecXi& fixed,
+                                   double time_step, const Vec3& gravity, double tolerance,
+                                   int refresh_iterations, int max_iterations)
+    : fixed_(fixed),
+      nv_(mesh_model.mesh().num_vertices()),
+      nt_(mesh_model.mesh().num_tets()),
+      h_(time_step),
+      tol_(tolerance),
+      refresh_(refresh_iterations),
+      max_it_(max_iterations),
+      gravity_(gravity) {
+  if (!(h_ > 0) || !std::isfinite(h_)) throw InvalidInput("time_step must be a positive number (s)");
+  if (!gravity_.allFinite()) throw InvalidInput("gravity contains NaN or Inf");
+  if (!(tol_ > 0) || tol_ >= 1) throw InvalidInput("tolerance must lie in (0, 1)");
+  if (refresh_ < 1 || max_it_ < refresh_) throw InvalidInput("need 1 <= refresh_iterations <= max_iterations");
+  if (fixed_.size() && (fixed_.minCoeff() < 0 || fixed_.maxCoeff() >= nv_))
+    throw InvalidInput("fixed vertex index out of range [0, " + std::to_string(nv_) + ")");
+  const auto& X = mesh_model.mesh().vertices();
+  size_ = (X.colwise().maxCoeff() - X.colwise().minCoeff()).norm();
+  dof_map_ = VecXi::Zero(3 * nv_);
+  for (int i = 0; i < fixed_.size(); ++i) dof_map_.segment<3>(3 * fixed_[i]).setConstant(-1);
+  for (int g = 0; g < 3 * nv_; ++g)
+    if (dof_map_[g] >= 0) dof_map_[g] = n_free_++;
+  if (n_free_ == 0) throw InvalidInput("every vertex is fixed: nothing to simulate");
+  assembler_ = std::make_unique<fem::SparseAssembler>(mesh_model.mesh().tets(), dof_map_, n_free_, true);
+  A_ = assembler_->pattern();
+  solver_.analyze(A_);
+}
+
+VecX LinearisedReplay::solve(const VecX& b, int step) {
+  auto refactor = [&]() {
+    try {
+      solver_.factorize(A_);
+    } catch (const NumericalError& err) {
+      std::ostringstream os;
+      os << "step " << step << ", Newton iteration 0: " << err.what();
+      throw NumericalError(os.str());
+    }
+    have_factor_ = true;
+    ++stats_.factorizations;
+  };
+  if (!have_factor_) refactor();
+  const double bnorm = b.norm();
+  if (bnorm == 0) return VecX::Zero(b.size());
+  const auto A = A_.selfadjointView<Eigen::Upper>();
+  VecX x = solver_.solve(b);
+  VecX r = b - A * x;
+  int it = 0;
+  if (r.norm() > tol_ * bnorm) {
+    VecX z = solver_.solve(r);
+    VecX p = z;
+    double rz = r.dot(z);
+    for (it = 1; it <= max_it_; ++it) {
+      const VecX Ap = A * p;
+      const double pAp = p.dot(Ap);
+      if (!(pAp > 0)) break;  // not SPD in floating point: fall back to the direct solve
+      const double alpha = rz / pAp;
+      x += alpha * p;
+      r -= alpha * Ap;
+      if (r.norm() <= tol_ * bnorm) break;
+      z = solver_.solve(r);
+      const double rz_new = r.dot(z);
+      p = z + (rz_new / rz) * p;
+      rz = rz_new;
+    }
+    stats_.pcg_iterations += std::min(it, max_it_);
+  }
+  if (it > max_it_ || !(r.norm() <= tol_ * bnorm) || !x.allFinite()) {
+    refactor();  // stale preconditioner: factorise this matrix and solve directly
+    ++stats_.direct_fallbacks;
+    return solver_.solve(b);
+  }
+  if (it > refresh_) refactor();  // drifting: a fresh factor for the next steps
+  return x;
+}
+
+MatX3 LinearisedReplay::simulate(const fem::Model& model, const MatX3& x0_in, const MatX3& v0_in,
+                                 int steps, const MatX3& f_ext, MatX3* velocities) {
+  if (model.mesh().num_vertices() != nv_ || model.mesh().num_tets() != nt_)
+    throw InvalidInput("LinearisedReplay::simulate: the model's mesh differs from the replay's");
+  if (steps < 0) throw InvalidInput("steps must be >= 0");
+  if (f_ext.rows() != nv_) throw InvalidInput("f_ext must have shape (#V, 3)");
+  model.check_state(x0_in, "x");
+  model.check_state(v0_in, "v");
+  const VecX& mass = model.dof_mass();
+  VecX fconst = as_dofs(f_ext);
+  for (int i = 0; i < nv_; ++i) fconst.segment<3>(3 * i) += mass[3 * i] * gravity_;
+  const bool rayleigh_only = model.correction() == nullptr;
+  const auto& T = model.mesh().tets();
+  const VecX& W = model.mesh().volumes();
+  const VecX& rho = model.density();
+  MatX3 out((steps + 1) * nv_, 3);
+  if (velocities) velocities->resize((steps + 1) * nv_, 3);
+  MatX3 xs = x0_in, vs = v0_in;
+  out.topRows(nv_) = xs;
+  if (velocities) velocities->topRows(nv_) = vs;
+  fem::ElementState st;
+  for (int s = 0; s < steps; ++s) {
+    MatX3 v = vs;
+    for (int i = 0; i < fixed_.size(); ++i) v.row(fixed_[i]).setZero();
+    const MatX3 x = xs + h_ * v;
+    try {
+      model.evaluate(x, v, fem::kForce | fem::kStiffness | (rayleigh_only ? 0 : fem::kDamping), true, st);
+    } catch (const NumericalError& err) {
+      std::ostringstream os;
+      os << "step " << s << ", Newton iteration 0: " << err.what();
+      throw NumericalError(os.str());
+    }
+    const VecX f = model.gather_forces(st);
+    VecX g(n_free_);
+    const auto vd = as_dofs(v);
+    const auto v0d = as_dofs(vs);
+    for (int d = 0; d < 3 * nv_; ++d)
+      if (dof_map_[d] >= 0) g[dof_map_[d]] = mass[d] * (vd[d] - v0d[d]) - h_ * (f[d] + fconst[d]);
+    if (rayleigh_only) {
+      coeff_.resize(nt_);
+      diag_ = mass;
+      for (int e = 0; e < nt_; ++e) {
+        coeff_[e] = h_ * h_ + h_ * st.alpha_K[e];
+        const double cm = h_ * st.alpha_M[e] * rho[e] * W[e] / 4.0;
+        if (cm != 0.0)
+          for (int a = 0; a < 4; ++a) diag_.segment<3>(3 * T(e, a)).array() += cm;
+      }
+      assembler_->assemble_scaled(st.K, coeff_, diag_, A_);
+    } else {
+      assembler_->assemble(st.K, h_ * h_, st.D, h_, mass, 1.0, A_);
+    }
+    const VecX dv = solve(-g, s);
+    if (!dv.allFinite()) {
+      std::ostringstream os;
+      os << "step " << s << ": linear solve produced NaN (diverged)";
+      throw NumericalError(os.str());
+    }
+    auto vdm = as_dofs(v);
+    for (int d = 0; d < 3 * nv_; ++d)
+      if (dof_map_[d] >= 0) vdm[d] += dv[dof_map_[d]];
+    if (!v.allFinite() || v.cwiseAbs().maxCoeff() * h_ > 1e4 * size_) {
+      std::ostringstream os;
+      os << "step " << s << ": simulation diverged (velocities blew up; "
+         << "try a smaller time step or check the material parameters)";
+      throw NumericalError(os.str());
+    }
+    vs = v;
+    xs = xs + h_ * v;
+    ++stats_.steps;
+    out.middleRows((s + 1) * nv_, nv_) = xs;
+    if (velocities) velocities->middleRows((s + 1) * nv_, nv_) = vs;
+  }
+  return out;
+}
+
+}  // namespace matlearn::time
