@@ -66,3 +66,33 @@ def test_rejects_other_mesh_and_bad_input():
         R.simulate(om, V, 0 * V, 3, 0 * V)
     with pytest.raises(ValueError):
         _core.time.LinearisedReplay(model, fixed, -1.0, G)
+
+
+def test_problem_memo_returns_identical_predictions_and_tells_models_apart(tmp_path):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
+    import diagnosis_suite as ds
+    from matlearn.diagnosis.effects import EffectContext, build_model
+    from matlearn.diagnosis.problem import Problem
+
+    spec = {"effects": [], "shape": {"kind": "bar", "L": 0.1, "W": 0.025, "H": 0.025, "cells": (4, 2, 2)},
+            "truth": {}, "motions": [("load", "train", 0.04, 1.0), ("load", "test", 0.06, 2.0)],
+            "E0": 1.5e6, "nu0": 0.4, "rho0": 1000.0, "duration": 0.05}
+    path, _ = ds.build_case(tmp_path, "memo", spec, seed=0, reuse=False)
+    P, Q = Problem(path), Problem(path, reuse_factor=False)
+    s = P.scene
+    ctx = EffectContext(s.mesh, s.material, s.damping, s.fixed)
+    rec = P.train[0]
+    for params in ({}, {"stiffness_scale": [0.2]}, {"rayleigh_damping": [0.0, 0.3]},
+                   {"compression_nonlinearity": [0.5]}):
+        a = P.predict(build_model(ctx, params), rec)
+        b = P.predict(build_model(ctx, params), rec)  # a new, equal model: from the memo
+        c = Q.predict(build_model(ctx, params), Q.train[0])  # plain integrator, no memo
+        assert np.array_equal(a, b) and np.abs(a - c).max() < 1e-12
+    assert P.memo_hits == 4 and P.simulations == 4
+    fps = {P.fingerprint(build_model(ctx, p)) for p in
+           ({}, {"stiffness_scale": [1e-6]}, {"rayleigh_damping": [1e-6, 0]}, {"density": [1e-6]},
+            {"tension_nonlinearity": [1e-3]}, {"poisson_ratio": [1e-6]})}
+    assert len(fps) == 6
