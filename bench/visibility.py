@@ -11,20 +11,19 @@ recording):
   markers_13   a seeded random 13 % of them
   markers_6    6 %
   scan_1view   virtual depth scans from one camera (noise 0.5 mm = 0.24 % of the object size,
-               1 % outliers, 5 % dropped frames), tracked with `matlearn.clouds` into markers
+               1 % outliers, 5 % dropped frames): a cloud-only recording given to `learn` as
+               is (learn tracks it, caches the tracking in the run folder and chooses lambda)
   scan_3view   the same from three cameras
 
-Each condition runs `matlearn.learning.learn` and records the per-iteration held-out max error.
-Observation weight: lam = 1 (the learning default) for exact markers and lam = 0.1 for the
-tracked scan markers, as the paper does for captured data ("lambda is chosen to be small,
-depending on the confidence in the observations"): at 200 Hz the tracked markers' acceleration
-noise (0.5 mm depth noise) is about 3x the true acceleration, and with lam = 1 the space-time
-solve turns it into control forces (measured: scan_1view diverged to 6 % at iteration 2 with
-lam = 1; converged with lam = 0.1). `--scan-lam` changes it.
-Writes bench/results/visibility.json: {"case": ..., "conditions": [{"condition",
-"max_error_pct_test", "nominal_max_error_pct_test", "best_iteration", "iterations": [...],
-"tracking": {...} (scan conditions), "wall_s"}], "target": ...}. Re-running skips finished
-conditions (use --force to redo) and `learn` resumes interrupted runs.
+Each condition runs `matlearn.learning.learn` with its defaults (lambda: 1 for markers; for the
+scans learn's own choice min(1, a_rms h^2 / sigma_obs), docs/point_clouds.md) and records the
+per-iteration train and held-out errors. A condition *converges* when its train error sequence
+never increases, the last iterate is the best, and the held-out error ends below the nominal
+model's. Writes bench/results/visibility.json: {"case", "target", "all_converged",
+"scan_within_1p5x_of_dense", "load_avg_1min_start/end", "conditions": [{"condition",
+"max_error_pct_test", "nominal_max_error_pct_test", "best_iteration", "lam", "converged",
+"iterations": [...], "tracking": {...} (scan conditions), "wall_s"}]}. Re-running skips
+finished conditions (use --force to redo) and `learn` resumes interrupted runs.
 
     python bench/visibility.py [--iterations 6] [--work DIR] [--only markers_100,scan_1view]
 """
@@ -40,9 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from matlearn import meshes
-from matlearn.clouds.ingest import markers_scene
 from matlearn.clouds.scanner import ScanSettings, default_cameras, scan_recording
-from matlearn.clouds.tracking import TrackOptions
 from matlearn.materials import Damping, Material
 from matlearn.recording import Recording, load_recording, save_recording
 from matlearn.scene import load_scene, save_scene
@@ -54,6 +51,7 @@ CONDITIONS = ("markers_100", "markers_13", "markers_6", "scan_1view", "scan_3vie
 BOX = [[-1.0, -1.0, -1.0], [1e-3, 1.0, 1.0]]
 TIP = [[0.18, -1.0, -1.0], [1.0, 1.0, 1.0]]
 NOISE = 5e-4  # m
+LOAD_START = __import__("os").getloadavg()[0]
 
 
 def build_dense_case(work: Path) -> Path:
@@ -95,70 +93,94 @@ def sparse_marker_scene(dense: Path, work: Path, fraction: float, name: str) -> 
     return _with_train(dense, out, out / "train_0.npz")
 
 
-def scan_scene(dense: Path, work: Path, views: int, name: str) -> tuple[Path, dict]:
+def scan_scene(dense: Path, work: Path, views: int, name: str) -> Path:
+    """The train recording as virtual scans: a cloud-only recording (no markers) that `learn`
+    tracks itself, exactly like a user's scanned scene."""
     out = work / name
-    info_file = out / "tracking_info.json"
-    if (out / "tracked" / "scene.toml").exists() and info_file.exists():
-        return out / "tracked" / "scene.toml", json.loads(info_file.read_text())
+    if (out / "scene.toml").exists():
+        return out / "scene.toml"
     out.mkdir(parents=True, exist_ok=True)
     sc = load_scene(dense)
     rec = load_recording(sc.recording_paths("train")[0])
-    mesh = sc.mesh
-    V = np.asarray(mesh.vertices)
-    # Dense markers sit on every surface vertex: they give the true surface of each frame.
+    X = _true_positions(sc, rec)
+    V = np.asarray(sc.mesh.vertices)
+    settings = ScanSettings(noise=NOISE, outlier_fraction=0.01, drop_fraction=0.05, seed=views)
+    scan_recording(X, rec.times, np.asarray(sc.mesh.surface_faces), default_cameras(V, views),
+                   settings, path=out / "train_scan.npz", at_rest_initially=rec.at_rest_initially)
+    return _with_train(dense, out, out / "train_scan.npz")
+
+
+def _true_positions(sc, rec) -> np.ndarray:
+    """Dense markers sit on every surface vertex: they give the true surface of each frame."""
     from scipy.spatial import cKDTree
 
+    V = np.asarray(sc.mesh.vertices)
     d, idx = cKDTree(V).query(rec.marker_rest)
     if d.max() > 1e-9:
         raise RuntimeError("dense markers do not coincide with the model's surface vertices")
     X = np.repeat(V[None], rec.num_frames, axis=0)
     X[:, idx] = rec.markers
-    settings = ScanSettings(noise=NOISE, outlier_fraction=0.01, drop_fraction=0.05, seed=views)
-    srec = scan_recording(X, rec.times, np.asarray(mesh.surface_faces), default_cameras(V, views),
-                          settings, path=out / "train_scan.npz", at_rest_initially=rec.at_rest_initially)
-    cloud_scene = _with_train(dense, out, out / "train_scan.npz")
-    t0 = time.time()
-    tracked = markers_scene(cloud_scene, out / "tracked", TrackOptions())
-    mrec = load_recording(load_scene(tracked).recording_paths("train")[0])
+    return X
+
+
+def tracking_info(dense: Path, scene_path: Path, res: dict) -> dict:
+    """Tracking accuracy of the learn run's own tracking against the truth surface (benchmark
+    only; learning never sees the truth)."""
+    sc = load_scene(dense)
+    rec = load_recording(sc.recording_paths("train")[0])
+    X = _true_positions(sc, rec)
+    (src, tr), = [(k, v) for k, v in res["tracking"].items() if v["role"] == "train"]
+    mrec = load_recording(tr["tracked"])
+    srec = load_recording(src)
+    sv = np.unique(np.asarray(sc.mesh.surface_faces))
     seen = mrec.seen
-    # Tracking accuracy against the truth surface (benchmark only; learning never sees it).
-    sv = np.unique(np.asarray(mesh.surface_faces))
     err = np.linalg.norm(mrec.markers - X[:, sv], axis=2)[seen] / sc.object_size * 100
-    info = {"views": views, "noise_m": NOISE, "outlier_fraction": 0.01, "drop_fraction": 0.05,
+    return {"noise_m": NOISE, "outlier_fraction": 0.01, "drop_fraction": 0.05,
             "points_per_frame": float(np.mean(np.diff(srec.cloud_offsets))),
-            "seen_vertex_fraction": float(seen.mean()),
-            "tracked_marker_error_pct": {"max": float(err.max()), "rms": float(np.sqrt(np.mean(err**2)))},
-            "track_wall_s": time.time() - t0}
-    info_file.write_text(json.dumps(info, indent=1))
-    return tracked, info
+            "seen_vertex_fraction": float(seen.mean()), "sigma_obs_m": tr["sigma_obs_m"],
+            "tracked_marker_error_pct": {"max": float(err.max()), "rms": float(np.sqrt(np.mean(err**2)))}}
 
 
-def run_condition(name: str, scene_path: Path, work: Path, iterations: int, log, lam: float = 1.0) -> dict:
+def run_condition(name: str, scene_path: Path, work: Path, iterations: int, log, lam=None) -> tuple[dict, dict]:
     from matlearn.learning import LearnOptions, learn
 
     t0 = time.time()
     scene = load_scene(scene_path)
-    res = learn(scene, work / "runs" / f"{name}_lam{lam:g}", LearnOptions(iterations=iterations, lam=lam),
-                resume=True, log=log)
+    res = learn(scene, work / "runs" / name, LearnOptions(iterations=iterations, lam=lam), resume=True, log=log)
     its = [{"iteration": m["iteration"], "train_max_error_pct": m["train"]["max_error_pct"],
             "test_max_error_pct": m["test"]["max_error_pct"] if m.get("test") else None,
             "test_rms_error_pct": m["test"]["rms_error_pct"] if m.get("test") else None,
-            "control_force_rms": m.get("control_force_rms")} for m in res["metrics"]]
-    return {"condition": name, "max_error_pct_test": res["final"]["test"]["max_error_pct"],
-            "rms_error_pct_test": res["final"]["test"]["rms_error_pct"],
-            "nominal_max_error_pct_test": res["nominal"]["test"]["max_error_pct"],
-            "best_iteration": res["best_iteration"], "lam": lam, "iterations": its, "wall_s": time.time() - t0}
+            "control_force_rms": m.get("control_force_rms"),
+            "update_step": m.get("fit", {}).get("update_step"), "stop": m.get("stop")} for m in res["metrics"]]
+    train = [i["train_max_error_pct"] for i in its]
+    final, nominal = res["final"]["test"]["max_error_pct"], res["nominal"]["test"]["max_error_pct"]
+    row = {"condition": name, "max_error_pct_test": final,
+           "rms_error_pct_test": res["final"]["test"]["rms_error_pct"],
+           "nominal_max_error_pct_test": nominal, "best_iteration": res["best_iteration"],
+           "lam": res["lambda"], "lambda_choice": _lam_choice(work / "runs" / name),
+           "converged": bool(all(b <= a for a, b in zip(train, train[1:])) and final < nominal
+                             and res["best_iteration"] == its[-1]["iteration"]),
+           "iterations": its, "wall_s": time.time() - t0}
+    return row, res
+
+
+def _lam_choice(run: Path):
+    doc = json.loads((run / "metrics.json").read_text())
+    return doc.get("lambda_choice")
 
 
 def main(argv=None) -> int:
+    global RESULTS
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--iterations", type=int, default=6)
     ap.add_argument("--work", default=str(ROOT / "results" / "visibility_work"))
     ap.add_argument("--only", default=",".join(CONDITIONS))
     ap.add_argument("--force", action="store_true", help="redo finished conditions")
-    ap.add_argument("--marker-lam", type=float, default=1.0, help="observation weight, marker conditions")
-    ap.add_argument("--scan-lam", type=float, default=0.1, help="observation weight, scan conditions")
+    ap.add_argument("--results", default=str(ROOT / "results" / "visibility.json"), help="JSON to write (default bench/results/visibility.json)")
+    ap.add_argument("--lam", type=float, default=None,
+                    help="observation weight for every condition (default: learn's own choice)")
     args = ap.parse_args(argv)
+    RESULTS = Path(args.results)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     log = lambda *a: print(*a, file=sys.stderr, flush=True)  # noqa: E731
@@ -179,10 +201,11 @@ def main(argv=None) -> int:
         elif name.startswith("markers_"):
             sp = sparse_marker_scene(dense, work, int(name.split("_")[1]) / 100.0, name)
         else:
-            sp, extra = scan_scene(dense, work, int(name[5]), name)
+            sp = scan_scene(dense, work, int(name[5]), name)
         try:
-            lam = args.scan_lam if name.startswith("scan_") else args.marker_lam
-            row = run_condition(name, sp, work, args.iterations, log, lam)
+            row, res = run_condition(name, sp, work, args.iterations, log, args.lam)
+            if name.startswith("scan_"):
+                extra = {"views": int(name[5]), **tracking_info(dense, sp, res)}
         except Exception as err:  # record the failure honestly and go on
             import traceback
 
@@ -205,16 +228,21 @@ def _write(done: dict) -> None:
     if "markers_100" in ok:
         ref = ok["markers_100"]
         verdict = {c: (ok[c] <= 1.5 * ref) for c in ("scan_1view", "scan_3view") if c in ok}
+    import os
+
     doc = {"case": "bar 10x2x2, designed material (neo-Hookean E=1e6 + compression softening), "
                    "nominal co-rotated E=1.2e6; train: release from 1 N tip load; test: 1.5 N up",
            "target": "every condition converges; scan conditions within 1.5x of markers_100",
-           "scan_within_1p5x_of_dense": verdict, "conditions": rows}
+           "all_converged": all(r.get("converged", False) for r in rows),
+           "scan_within_1p5x_of_dense": verdict, "load_avg_1min_start": LOAD_START,
+           "load_avg_1min_end": os.getloadavg()[0], "cpus": os.cpu_count(), "conditions": rows}
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(doc, indent=1))
 
 
 def _print(done: dict) -> None:
-    print(f"{'condition':<12} {'nominal %':>10} {'learned %':>10} {'best it':>8}  per-iteration test max %")
+    print(f"{'condition':<12} {'lambda':>7} {'nominal %':>10} {'learned %':>10} {'best it':>8} {'conv':>5}  "
+          "per-iteration train / test max %")
     for c in CONDITIONS:
         r = done.get(c)
         if r is None:
@@ -222,9 +250,10 @@ def _print(done: dict) -> None:
         if "error" in r:
             print(f"{c:<12} failed: {r['error']}")
             continue
-        per = " ".join(f"{i['test_max_error_pct']:.2f}" for i in r["iterations"])
-        print(f"{c:<12} {r['nominal_max_error_pct_test']:>10.3f} {r['max_error_pct_test']:>10.3f} "
-              f"{r['best_iteration']:>8}  {per}")
+        tr = " ".join(f"{i['train_max_error_pct']:.3f}" for i in r["iterations"])
+        te = " ".join(f"{i['test_max_error_pct']:.3f}" for i in r["iterations"])
+        print(f"{c:<12} {r['lam']:>7.3g} {r['nominal_max_error_pct_test']:>10.3f} {r['max_error_pct_test']:>10.3f} "
+              f"{r['best_iteration']:>8} {str(r['converged']):>5}  {tr} / {te}")
 
 
 if __name__ == "__main__":

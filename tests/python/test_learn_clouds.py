@@ -115,3 +115,25 @@ def test_cli_learns_from_a_cloud_scene(scanned, tmp_path):
     assert summary["lambda"] < 1.0
     assert summary["final"]["test"]["max_error_pct"] < summary["nominal"]["test"]["max_error_pct"]
     assert any(p.name.endswith("_tracked.npz") for p in (out / "tracked").iterdir())
+
+
+def test_marker_noise_and_cloud_lambda():
+    from matlearn.clouds.prepare import marker_noise
+    from matlearn.recording import Recording
+
+    rng = np.random.default_rng(0)
+    t = np.arange(400) * 0.005
+    K = 30
+    rest = rng.standard_normal((K, 3)) * 0.01
+    smooth = rest[None] + 1e-3 * np.sin(2 * np.pi * 5.0 * t)[:, None, None]  # 5 Hz at 200 Hz
+    noisy = smooth + rng.normal(0.0, 1e-4, smooth.shape)
+    noisy[50:60, :5] = np.nan  # unseen stretches are skipped
+    est = marker_noise(Recording(t, rest, noisy))
+    assert est == pytest.approx(1e-4, rel=0.05)
+    assert marker_noise(Recording(t, rest, smooth)) < 2e-6  # a smooth motion is not noise
+    # lambda: 1 for exact markers, falls as 1 / sigma (omega_c^2 ~ 1 / sigma), capped at 1.
+    lam = [cloud_lambda(1e-3, 50.0, s, 0.005, 1e-3) for s in (0.0, 1e-5, 1e-4, 4e-4)]
+    assert lam[0] == 1.0 and cloud_lambda(1e-3, 50.0, 1e-6, 0.005, 1e-3) == 1.0 and lam[1] < 1.0
+    assert lam[3] == pytest.approx(lam[2] / 4, rel=1e-9)
+    wc = 50.0 * (np.pi * 1e-6 / (50.0 * 1e-8 * 0.005)) ** 0.25
+    assert lam[2] == pytest.approx((wc * 1e-3) ** 2, rel=1e-12)

@@ -104,3 +104,26 @@ def test_spacetime_with_five_markers_does_not_stall(tmp_path):
     cost = out["report"]["cost"]
     print("cost", cost, "steps", out["report"]["step_length"], out["report"].get("fallback"))
     assert cost[-1] < 0.1 * cost[0], cost
+
+
+@pytest.mark.parametrize("search, expect_fits, expect_ridge", [("all", 3, 1e-2), ("first", 2, 1e-4)])
+def test_ridge_search(case, tmp_path, monkeypatch, search, expect_fits, expect_ridge):
+    """"all" fits every ridge weight and keeps the lowest train error; "first" stops at the first
+    that lowers the current error (fewer fits and forward simulations on large cases)."""
+    from matlearn.learning.fit import RbfParams
+
+    fits = []
+
+    def fake_fit(nominal, frames, num_centers, ridge, **kw):
+        fits.append(ridge)
+        return RbfParams(np.ones((1, 3)), np.full((1, 3), ridge)), {"residual_ratio": 0.0}
+
+    monkeypatch.setattr(loop_mod, "fit_correction", fake_fit)
+    lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
+                          LearnOptions(ridges=(1e-6, 1e-4, 1e-2), ridge_search=search, **{"modes": 4}), log=None)
+    errors = {1e-6: 1.5, 1e-4: 0.9, 1e-2: 0.8}  # current error 1.0: 1e-4 is the first to improve
+    monkeypatch.setattr(lr, "_train_error", lambda p: (errors[float(p.weights[0, 0])], [], []))
+    p, info, _ = lr._update(None, None, None, 1.0, 0)
+    assert fits == [1e-6, 1e-4, 1e-2][:expect_fits]
+    assert info["ridge"] == expect_ridge and float(p.weights[0, 0]) == expect_ridge
+    assert info["update_step"] == 1.0

@@ -52,7 +52,10 @@ class LearnOptions:
     RBF centres; damping: learn the strain-dependent alpha_K change; gn_iterations:
     Gauss-Newton steps per space-time solve; pod_window: fraction of each trajectory used for
     the basis; fit_frames: max frames per recording in the fit; ridges: relative Tikhonov
-    weights tried per iteration (the best train error wins); patience: iterations without
+    weights tried per iteration (the best train error wins); ridge_search: "all" (fit and
+    forward-simulate every ridge weight) or "first" (in the given order, stop at the first
+    whose train error is lower than the current one: one fit + one forward simulation per
+    iteration instead of len(ridges), for large cases, bench/learning_scale.py); patience: iterations without
     improvement before stopping; seed: k-means seed; backtrack: shortened update steps tried
     when the full update does not lower the train error; track: tracking options for cloud
     recordings (None: defaults)."""
@@ -66,6 +69,7 @@ class LearnOptions:
     pod_window: float = 1.0
     fit_frames: int = 150
     ridges: tuple = (1e-6, 1e-4, 1e-2)
+    ridge_search: str = "all"
     patience: int = 2
     seed: int = 0
     backtrack: tuple = (0.5, 0.25)
@@ -81,6 +85,8 @@ class LearnOptions:
             raise ValueError(f"backtrack steps must lie in (0, 1), got {self.backtrack}")
         if not self.ridges:
             raise ValueError("ridges: at least one ridge weight")
+        if self.ridge_search not in ("all", "first"):
+            raise ValueError(f"ridge_search must be 'all' or 'first', got {self.ridge_search!r}")
 
 
 def robust_initial_state(scene, model, rec, emb):
@@ -369,6 +375,8 @@ class Learner:
             err, errs, sims = self._train_error(p)
             info["train_max_error_pct"] = float(err)
             cands.append((err, len(cands), p, info, errs, sims))
+            if opt.ridge_search == "first" and err < current_err:
+                break
         cands_best = min(cands, key=lambda c: (c[0], c[1]))
         err, _, p, info, errs, sims = cands_best
         info["ridge_candidates"] = [{"ridge": c[3]["ridge"], "train_max_error_pct": float(c[0])} for c in cands]
