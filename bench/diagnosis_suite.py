@@ -18,7 +18,9 @@ so an interrupted run resumes. --timing adds totals.timing_3k (s) to diagnosis_s
 top1_correct: the verdict's first effect is a true effect, or a true effect is listed in its
 `confounded_with` (density and stiffness scale cannot be told apart when every load is gravity
 or a prescribed motion); for the control case: the verdict is []. gap_*_pct: held-out max error,
-% of object size, before and after the verdict's effects were added.
+% of object size, before and after the verdict's effects were added. effect_pct (extra): the
+effect's own size, max marker distance between the truth's test recording and its effect-free
+twin's (% of object size; compare with the control's gap, the discretisation).
 """
 from __future__ import annotations
 
@@ -73,6 +75,36 @@ def build_case(work: Path, name: str, spec: dict, seed: int, reuse: bool = True)
             if "history_dependence" in spec["truth"]:  # stateful truth: start afresh
                 truth_mat, truth_damping, correction, _ = build_truth(spec, truth_mesh, model_mesh, axis, clamp)
     raise RuntimeError(f"{name}: the truth's static hold failed for every load-step count")
+
+
+def effect_size(work: Path, name: str, spec: dict, seed: int) -> float | None:
+    """How visible the case's effect is: max marker distance (% of the model's object size)
+    between the test recordings of the truth and of its effect-free twin (same fine mesh,
+    markers, motions; nominal material, no noise). Compare with the control case's nominal gap
+    (the discretisation). Cached in work/name/twin/; None for the control."""
+    if not spec["truth"]:
+        return None
+    from matlearn import meshes
+    from matlearn.recording import load_recording
+
+    twin_dir = work / name / "twin"
+    if not (twin_dir / "test_0.npz").exists():
+        model_mesh, truth_mesh, clamp, tip, axis, length = make_shape(spec["shape"])
+        plain = dict(spec, truth={})
+        mat, damping, _, _ = build_truth(plain, truth_mesh, model_mesh, axis, clamp)
+        fixed = vertices_in_box(np.asarray(truth_mesh.vertices), clamp)
+        motions = build_motions(spec, truth_mesh, mat, fixed, tip, axis, length, None)
+        tests = [m for m in motions if m.role == "test"]
+        nominal = Material("corotated", spec["E0"], spec["nu0"], spec["rho0"])
+        make_case(work / name, "twin", truth_mesh, mat, damping, model_mesh, nominal, damping, clamp, tests,
+                  marker_fraction=0.25, noise=0.0, seed=seed)
+    size = meshes.object_size(make_shape(spec["shape"])[0])
+    worst = 0.0
+    for i, _ in enumerate(m for m in spec["motions"] if m[1] == "test"):
+        a = load_recording(work / name / f"test_{i}.npz").markers
+        b = load_recording(twin_dir / f"test_{i}.npz").markers
+        worst = max(worst, float(np.nanmax(np.linalg.norm(a - b, axis=2))))
+    return 100.0 * worst / size
 
 
 def _commit() -> str:
@@ -143,14 +175,18 @@ def run_set(specs: dict, work: Path, names, fresh: bool, rediagnose: bool, seed0
     for i, name in enumerate(names):
         spec = specs[name]
         cache = work / name / "suite_row.json"
+        seed = seed0 + list(specs).index(name)
         if cache.exists() and not (fresh or rediagnose):
-            rows.append(json.loads(cache.read_text()))
+            row = json.loads(cache.read_text())
+            if "effect_pct" not in row:
+                row["effect_pct"] = effect_size(work, name, spec, seed)
+                cache.write_text(json.dumps(row))
+            rows.append(row)
             print(f"{name}: cached", file=sys.stderr)
             continue
         print(f"== {name} ({i + 1}/{len(names)}): building truth", file=sys.stderr, flush=True)
         t0 = time.time()
         try:
-            seed = seed0 + list(specs).index(name)
             path, region_model = build_case(work, name, spec, seed=seed, reuse=not fresh)
             t0 = time.time()
             result = diagnose(path, work / name / "diagnosis", seed=0,
@@ -160,6 +196,11 @@ def run_set(specs: dict, work: Path, names, fresh: bool, rediagnose: bool, seed0
             row = {"case": name, "true_effects": spec["effects"], "verdict": None,
                    "top1_correct": False, "region_iou": None, "gap_before_pct": None,
                    "gap_after_pct": None, "wall_s": time.time() - t0, "error": str(err)}
+        try:
+            row["effect_pct"] = effect_size(work, name, spec, seed)
+        except (RuntimeError, ValueError) as err:
+            row["effect_pct"] = None
+            print(f"{name}: effect size failed ({err})", file=sys.stderr)
         row["shape"] = spec["shape"]["kind"]
         row["motions"] = [m[0] for m in spec["motions"]]
         row["commit"] = _commit()
@@ -171,7 +212,7 @@ def run_set(specs: dict, work: Path, names, fresh: bool, rediagnose: bool, seed0
 
 
 def print_table(rows):
-    print(f"{'case':40s} {'shape':8s} {'true':42s} {'verdict':42s} top1 iou   before after  wall")
+    print(f"{'case':40s} {'shape':8s} {'true':42s} {'verdict':42s} top1 iou   effect before after  wall")
     for r in rows:
         if r.get("error"):
             print(f"{r['case']:40s} FAILED: {r['error']}")
@@ -179,6 +220,7 @@ def print_table(rows):
         iou_s = "-" if r["region_iou"] is None else f"{r['region_iou']:.2f}"
         print(f"{r['case']:40s} {r.get('shape', ''):8s} {','.join(r['true_effects']):42s} "
               f"{','.join(r['verdict']):42s} {'yes' if r['top1_correct'] else 'no ':4s} {iou_s:5s} "
+              f"{'-' if r.get('effect_pct') is None else format(r['effect_pct'], '6.2f'):>6s} "
               f"{r['gap_before_pct']:6.2f} {r['gap_after_pct']:6.2f} {r['wall_s']:5.0f}")
 
 

@@ -42,6 +42,12 @@ def test_strong_effect_gap_exceeds_control(built):
     _, ctrl, stiff = built
     g_ctrl, g_stiff = _nominal_gap(ctrl), _nominal_gap(stiff)
     assert g_stiff > 2.0 * g_ctrl, (g_ctrl, g_stiff)
+    # the effect alone (truth vs its effect-free twin on the same fine mesh) is most of the gap
+    work = Path(stiff).parent.parent
+    spec = _spec({"stiffness_scale": 0.5}, effects=["stiffness_scale"])
+    size = ds.effect_size(work, "stiff", spec, seed=3)
+    assert 0.5 * g_stiff < size < 1.5 * g_stiff, (size, g_stiff)
+    assert ds.effect_size(work, "ctrl", _spec({}), seed=3) is None
 
 
 def test_case_is_a_release_with_finer_truth_and_sparse_markers(built):
