@@ -1,8 +1,10 @@
 """Distillation of the learned RBF correction into a small MLP (method.md section 6).
 
-Samples come from many forward simulations with the RBF model (the train recordings' motions
-plus scaled variants of their initial poses, so the MLP sees a wider range of states than the
-recordings alone). The target is the total principal-stress correction: the elastic RBF part
+Samples come from many forward simulations with the RBF model: the train recordings' motions
+from their initial poses scaled about the rest shape by factors <= 1, i.e. the range of states
+the simulations actually visit (larger factors put most samples where the RBF itself
+extrapolates, and their spread dominates the normalisation). Frames are subsampled with a
+stride; `offset` picks a disjoint set of frames for held-out agreement. The target is the total principal-stress correction: the elastic RBF part
 plus the damping part expressed as a principal stress, dalpha_eff * (dPh_nom/dFh) Fhdot, where
 dalpha_eff is the change of the clamped alpha_K. The MLP is 6 -> 6 -> 6 -> 3 with batch norm +
 ELU, inputs and outputs normalised to zero mean / unit variance, samples shuffled, seeded; for
@@ -51,10 +53,11 @@ def _fd_diag(material, Fh, h):
     return out
 
 
-def simulation_samples(scene, rbf_correction, recordings, scales=(0.5, 1.0, 1.5),
-                       max_samples: int = 30000, seed: int = 0, stride: int = 5):
+def simulation_samples(scene, rbf_correction, recordings, scales=(0.5, 0.75, 1.0),
+                       max_samples: int = 30000, seed: int = 0, stride: int = 5, offset: int = 0):
     """Run the RBF model through every recording's motion from its initial pose scaled about
-    the rest shape by each factor; collect (inputs, targets)."""
+    the rest shape by each factor; collect (inputs, targets) on frames offset, offset + stride,
+    ... (a different offset gives held-out frames of the same simulations)."""
     nominal = scene.model()
     rbf_model = scene.model(rbf_correction)
     mu, lam = scene.material.lame(scene.mesh.num_tets)
@@ -69,7 +72,7 @@ def simulation_samples(scene, rbf_correction, recordings, scales=(0.5, 1.0, 1.5)
                 _, X, Vel = simulate_recording(scene, rbf_model, rec, state=(xs, v0))
             except RuntimeError:
                 continue  # a scaled pose the model cannot hold: skip it
-            a, b = correction_samples(nominal, rbf_model, X[::stride], Vel[::stride], material)
+            a, b = correction_samples(nominal, rbf_model, X[offset::stride], Vel[offset::stride], material)
             ins.append(a)
             outs.append(b)
     if not ins:
@@ -82,7 +85,7 @@ def simulation_samples(scene, rbf_correction, recordings, scales=(0.5, 1.0, 1.5)
     return X, Y
 
 
-def train_mlp(X, Y, epochs: int = 30, batch: int = 512, lr: float = 1e-2, seed: int = 0,
+def train_mlp(X, Y, epochs: int = 60, batch: int = 1024, lr: float = 1e-2, seed: int = 0,
               hidden: int = 6) -> tuple[dict, dict]:
     """Train 6 -> hidden -> hidden -> 3 (BatchNorm + ELU) on normalised data; returns (exported
     dict with BN folded, info)."""
