@@ -4,6 +4,8 @@
 
 namespace matlearn::correction {
 
+constexpr int kMaxWidth = 32;  ///< widest MLP layer (fixed-capacity temporaries)
+
 static void resize_output(int m, CorrectionOutput& out) {
   out.dPh.setZero(m, 3);
   out.d_dFh.assign(m, Mat3::Zero());
@@ -65,6 +67,8 @@ MlpCorrection::MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX 
     if (layers_[l].W.cols() != width || layers_[l].b.size() != layers_[l].W.rows())
       throw InvalidInput("MlpCorrection: layer " + std::to_string(l) + " has inconsistent shape");
     width = layers_[l].W.rows();
+    if (width > kMaxWidth)
+      throw InvalidInput("MlpCorrection: layers wider than " + std::to_string(kMaxWidth) + " are not supported");
   }
   if (width != 3) throw InvalidInput("MlpCorrection: last layer must have 3 outputs");
   if (in_mean_.size() != 6 || in_std_.size() != 6 || out_mean_.size() != 3 || out_std_.size() != 3)
@@ -76,15 +80,18 @@ MlpCorrection::MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX 
 void MlpCorrection::evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const {
   const int m = Fh.rows();
   resize_output(m, out);
+  // Fixed-capacity temporaries (no heap allocation per element): layers are at most kMaxWidth wide.
+  using SmallV = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kMaxWidth, 1>;
+  using SmallM = Eigen::Matrix<double, Eigen::Dynamic, 6, 0, kMaxWidth, 6>;
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < m; ++e) {
-    VecX a(6);
+    SmallV a(6);
     a << Fh.row(e).transpose(), Fhdot.row(e).transpose();
     a = (a - in_mean_).cwiseQuotient(in_std_);
-    MatX Ja = in_std_.cwiseInverse().asDiagonal();  // d a / d input (6 x 6)
+    SmallM Ja = in_std_.cwiseInverse().asDiagonal();  // d a / d input (6 x 6)
     for (size_t l = 0; l < layers_.size(); ++l) {
-      VecX z = layers_[l].W * a + layers_[l].b;
-      MatX Jz = layers_[l].W * Ja;
+      SmallV z = layers_[l].W * a + layers_[l].b;
+      SmallM Jz = layers_[l].W * Ja;
       if (l + 1 < layers_.size()) {
         for (int i = 0; i < z.size(); ++i) {
           const double d = z[i] > 0 ? 1.0 : std::exp(z[i]);
@@ -92,11 +99,11 @@ void MlpCorrection::evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutp
           Jz.row(i) *= d;
         }
       }
-      a = std::move(z);
-      Ja = std::move(Jz);
+      a = z;
+      Ja = Jz;
     }
     const Vec3 y = a.cwiseProduct(out_std_) + out_mean_;
-    const MatX Jy = out_std_.asDiagonal() * Ja;
+    const Eigen::Matrix<double, 3, 6> Jy = out_std_.asDiagonal() * Ja;
     out.dPh.row(e) = y.transpose();
     out.d_dFh[e] = Jy.leftCols<3>();
     out.d_dFhdot[e] = Jy.rightCols<3>();
