@@ -2,8 +2,9 @@
 real-data ingestion (docs/point_clouds.md). A closed surface mesh (.obj/.ply/.stl/.off,
 tetrahedralised with TetGen), one folder per recording of per-frame .ply/.pcd clouds +
 times.txt (the first folder is the train recording, the others test unless --roles says
-otherwise), a clamp box and a nominal material guess give OUT/scene.toml (cloud recordings) and,
-after tracking, OUT/tracked/scene.toml, which `matlearn learn` runs on."""
+otherwise), a clamp box and a nominal material guess give OUT/scene.toml (cloud recordings: `matlearn learn
+OUT/scene.toml` tracks them itself and chooses lambda from the scan noise) and, after tracking,
+OUT/tracked/scene.toml (tracked markers, for inspection; learned with lambda = 1 unless given)."""
 from __future__ import annotations
 
 import sys
