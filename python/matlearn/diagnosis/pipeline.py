@@ -259,7 +259,10 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                         "score": hist["score"], "parameters": hist["parameters"],
                         "gap_after": stateless[-1] if stateless else dict(gap_before),
                         "outside_library": True})
-    if "heterogeneity" in verdict:
+    lead = next((e for e in effects if verdict and e["name"] == verdict[0]), {})
+    if "heterogeneity" in verdict or "heterogeneity" in lead.get("confounded_with", []):
+        # the located region leads `where` when a heterogeneity is concluded, or is one of the
+        # explanations the data cannot tell apart from the first verdict effect
         het = where.region_entry(scene.mesh, np.flatnonzero(ctx.region), shares)
         regions = [het] + [r for r in regions if not set(r["elements"]) <= set(het["elements"])]
         _cap_shares(regions)
