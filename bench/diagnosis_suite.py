@@ -170,11 +170,15 @@ def totals(rows):
     }
 
 
-def run_set(specs: dict, work: Path, names, fresh: bool, rediagnose: bool, seed0: int = 100):
+def run_set(specs: dict, work: Path, names, fresh: bool, rediagnose: bool, seed0: int = 100,
+            collect: bool = False):
     rows = []
     for i, name in enumerate(names):
         spec = specs[name]
         cache = work / name / "suite_row.json"
+        if collect and not cache.exists():
+            print(f"{name}: not run yet (--collect)", file=sys.stderr)
+            continue
         seed = seed0 + list(specs).index(name)
         if cache.exists() and not (fresh or rediagnose):
             row = json.loads(cache.read_text())
@@ -230,6 +234,8 @@ def main(argv=None):
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--fresh", action="store_true", help="rebuild cases and rediagnose")
     ap.add_argument("--rediagnose", action="store_true", help="keep built cases, rediagnose")
+    ap.add_argument("--collect", action="store_true",
+                    help="write the results from the cached rows only (cases not run are listed)")
     ap.add_argument("--set", choices=("named", "random"), default="named")
     ap.add_argument("--seed", type=int, default=1, help="seed of the random set")
     ap.add_argument("--cases", type=int, default=10, help="size of the random set")
@@ -256,9 +262,11 @@ def main(argv=None):
     unknown = [n for n in names if n not in specs]
     if unknown:
         raise SystemExit(f"unknown case(s) {unknown}; cases: {list(specs)}")
-    rows = run_set(specs, work, names, args.fresh, args.rediagnose, seed0)
+    rows = run_set(specs, work, names, args.fresh, args.rediagnose, seed0, args.collect)
     out = {"set": args.set, "seed": args.seed if args.set == "random" else None,
            "cases": rows, "totals": totals(rows)}
+    done = {r["case"] for r in rows}
+    out["totals"]["not_run"] = [n for n in names if n not in done]
     if not args.only:
         res.parent.mkdir(exist_ok=True)
         if res.exists():  # keep a timing measured separately
