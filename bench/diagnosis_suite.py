@@ -236,6 +236,7 @@ def main(argv=None):
     ap.add_argument("--rediagnose", action="store_true", help="keep built cases, rediagnose")
     ap.add_argument("--collect", action="store_true",
                     help="write the results from the cached rows only (cases not run are listed)")
+    ap.add_argument("--results", default=None, help="results file (default bench/results/diagnosis_suite[_random].json)")
     ap.add_argument("--set", choices=("named", "random"), default="named")
     ap.add_argument("--seed", type=int, default=1, help="seed of the random set")
     ap.add_argument("--cases", type=int, default=10, help="size of the random set")
@@ -257,6 +258,8 @@ def main(argv=None):
         work = Path(args.work) if args.work else ROOT / "work" / "diagnosis_suite"
         res = ROOT / "results" / "diagnosis_suite.json"
         seed0 = 100
+    if args.results:
+        res = Path(args.results)
     work.mkdir(parents=True, exist_ok=True)
     names = args.only or list(specs)
     unknown = [n for n in names if n not in specs]
