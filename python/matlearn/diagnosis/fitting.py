@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .effects import FAMILIES, NUISANCE, build_model, n_params
+from .problem import stack_residuals
 
 
 @dataclass
@@ -55,17 +56,7 @@ def marker_residual(problem, model, recs=None, fast: bool = True) -> np.ndarray:
     """Stacked (prediction - observation) over seen markers of `recs` (default train), in units
     of the object size; a failed simulation gives a large constant residual."""
     recs = problem.train if recs is None else recs
-    out = []
-    for rec in recs:
-        seen = rec.seen
-        try:
-            r = (predict(problem, model, rec, fast) - rec.markers)[seen].ravel() / problem.object_size
-            if not np.all(np.isfinite(r)):
-                raise RuntimeError("non-finite prediction")
-        except RuntimeError:
-            r = np.full(3 * int(seen.sum()), 1.0)
-        out.append(r)
-    return np.concatenate(out)
+    return stack_residuals(recs, lambda rec: predict(problem, model, rec, fast), problem.object_size)
 
 
 def gap(problem, model, fast: bool = False) -> dict:

@@ -109,18 +109,7 @@ class Problem:
         """Stacked (prediction - observation) over seen markers of `recs` (default train), in
         units of the object size; a failed simulation returns a large constant residual."""
         recs = self.train if recs is None else recs
-        out = []
-        for rec in recs:
-            seen = rec.seen
-            try:
-                P = self.predict(model, rec, fast)
-                r = (P - rec.markers)[seen].ravel() / self.object_size
-                if not np.all(np.isfinite(r)):
-                    raise RuntimeError("non-finite prediction")
-            except RuntimeError:
-                r = np.full(3 * int(seen.sum()), 1.0)
-            out.append(r)
-        return np.concatenate(out)
+        return stack_residuals(recs, lambda rec: self.predict(model, rec, fast), self.object_size)
 
     def gap(self, model, role: str = "test", fast: bool = False) -> dict:
         """Held-out gap (max and RMS % of object size, pooled) with the full Newton solve."""
@@ -202,3 +191,19 @@ def refine_tets(V: np.ndarray, T: np.ndarray):
     neg = np.linalg.det(D) < 0
     Tn[neg, 1], Tn[neg, 2] = Tn[neg, 2].copy(), Tn[neg, 1].copy()
     return Vn, Tn
+
+
+def stack_residuals(recs, predict, object_size: float) -> np.ndarray:
+    """Stacked (predict(rec) - observed markers) over the seen markers of `recs`, in units of
+    the object size; a failed or non-finite prediction gives a large constant residual (1)."""
+    out = []
+    for rec in recs:
+        seen = rec.seen
+        try:
+            r = (predict(rec) - rec.markers)[seen].ravel() / object_size
+            if not np.all(np.isfinite(r)):
+                raise RuntimeError("non-finite prediction")
+        except RuntimeError:
+            r = np.full(3 * int(seen.sum()), 1.0)
+        out.append(r)
+    return np.concatenate(out)
