@@ -22,20 +22,14 @@ from matlearn.replay import simulate_recording
 from matlearn.scene import load_scene, save_scene
 from matlearn.synthetic import Motion, make_case
 
-L = 0.08
+from learning_cases import small_bar_case
+
 OPTS = dict(modes=12, centers=12, ridges=(1e-6,))
 
 
 @pytest.fixture(scope="module")
 def case(tmp_path_factory):
-    mesh = meshes.bar(L, 0.02, 0.02, cells=(5, 1, 1))
-    tip = [[L - 0.011, -1, -1], [1, 1, 1]]
-    motions = [Motion("release", "train", 0.1, load={"box": tip, "force": [0, 0.25, 0.08]}),
-               Motion("release", "test", 0.1, load={"box": tip, "force": [0, 0.4, -0.05]})]
-    return make_case(tmp_path_factory.mktemp("loop"), "bar", mesh,
-                     Material("neo_hookean", 2e5, 0.43, 1000.0), Damping(0.0, 0.004),
-                     mesh, Material("corotated", 3.5e5, 0.43, 1000.0), Damping(0.0, 0.004),
-                     [[-1, -1, -1], [1e-4, 1, 1]], motions, marker_fraction=0.5, seed=3)
+    return small_bar_case(tmp_path_factory.mktemp("loop"))
 
 
 def _scaled_fit(factor):

@@ -5,28 +5,19 @@ import json
 import numpy as np
 import pytest
 
-from matlearn import cli, meshes
+from matlearn import cli
 from matlearn.learning import LearnOptions, learn, load_model
-from matlearn.materials import Damping, Material
 from matlearn.embedding import embed_points
 from matlearn.learning.loop import robust_initial_state
 from matlearn.replay import predict_markers, simulate_recording, trajectory_error
 from matlearn.scene import load_scene
-from matlearn.synthetic import Motion, make_case
 
-L = 0.08
+from learning_cases import small_bar_case
 
 
 @pytest.fixture(scope="module")
 def case(tmp_path_factory):
-    mesh = meshes.bar(L, 0.02, 0.02, cells=(5, 1, 1))
-    tip = [[L - 0.011, -1, -1], [1, 1, 1]]
-    motions = [Motion("release", "train", 0.1, load={"box": tip, "force": [0, 0.25, 0.08]}),
-               Motion("release", "test", 0.1, load={"box": tip, "force": [0, 0.4, -0.05]})]
-    return make_case(tmp_path_factory.mktemp("cases"), "bar", mesh,
-                     Material("neo_hookean", 2e5, 0.43, 1000.0), Damping(0.0, 0.004),
-                     mesh, Material("corotated", 3.5e5, 0.43, 1000.0), Damping(0.0, 0.004),
-                     [[-1, -1, -1], [1e-4, 1, 1]], motions, marker_fraction=0.5, seed=3)
+    return small_bar_case(tmp_path_factory.mktemp("cases"))
 
 
 def test_learning_cuts_held_out_error_and_resume_is_identical(case, tmp_path):
