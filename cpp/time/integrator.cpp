@@ -101,23 +101,7 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
     for (int d = 0; d < 3 * nv; ++d)
       if (dof_map_[d] >= 0) g[dof_map_[d]] = mass[d] * (vd[d] - v0d[d]) - h_ * (f[d] + fconst[d]);
     t0 = Clock::now();
-    if (rayleigh_only) {
-      const int m = model_->mesh().num_tets();
-      const auto& T = model_->mesh().tets();
-      const VecX& W = model_->mesh().volumes();
-      const VecX& rho = model_->density();
-      coeff_.resize(m);
-      diag_ = mass;
-      for (int e = 0; e < m; ++e) {
-        coeff_[e] = h_ * h_ + h_ * st.alpha_K[e];
-        const double cm = h_ * st.alpha_M[e] * rho[e] * W[e] / 4.0;
-        if (cm != 0.0)
-          for (int a = 0; a < 4; ++a) diag_.segment<3>(3 * T(e, a)).array() += cm;
-      }
-      assembler_->assemble_scaled(st.K, coeff_, diag_, A_);
-    } else {
-      assembler_->assemble(st.K, h_ * h_, st.D, h_, mass, 1.0, A_);
-    }
+    assemble_step_matrix(*model_, st, h_, mass, rayleigh_only, *assembler_, coeff_, diag_, A_);
     timings_.assemble_s += seconds_since(t0);
     t0 = Clock::now();
     try {
@@ -297,6 +281,28 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
                            std::to_string(r.norm() / ref) + "); try more load_steps");
   }
   v_.setZero();
+}
+
+void assemble_step_matrix(const fem::Model& model, const fem::ElementState& st, double h,
+                          const VecX& mass, bool rayleigh_only, const fem::SparseAssembler& assembler,
+                          VecX& coeff, VecX& diag, SpMat& A) {
+  if (!rayleigh_only) {
+    assembler.assemble(st.K, h * h, st.D, h, mass, 1.0, A);
+    return;
+  }
+  const int m = model.mesh().num_tets();
+  const auto& T = model.mesh().tets();
+  const VecX& W = model.mesh().volumes();
+  const VecX& rho = model.density();
+  coeff.resize(m);
+  diag = mass;
+  for (int e = 0; e < m; ++e) {
+    coeff[e] = h * h + h * st.alpha_K[e];
+    const double cm = h * st.alpha_M[e] * rho[e] * W[e] / 4.0;
+    if (cm != 0.0)
+      for (int a = 0; a < 4; ++a) diag.segment<3>(3 * T(e, a)).array() += cm;
+  }
+  assembler.assemble_scaled(st.K, coeff, diag, A);
 }
 
 }  // namespace matlearn::time

@@ -91,4 +91,11 @@ class Integrator {
   double size_;
 };
 
+// The backward-Euler matrix M + h D + h^2 K of an evaluated state. Without a correction the
+// damping is Rayleigh, so it is assembled from the element stiffnesses scaled by h^2 + h alpha_K
+// plus a lumped diagonal M + h alpha_M M (no D blocks needed). coeff/diag are scratch.
+void assemble_step_matrix(const fem::Model& model, const fem::ElementState& st, double h,
+                          const VecX& mass, bool rayleigh_only, const fem::SparseAssembler& assembler,
+                          VecX& coeff, VecX& diag, SpMat& A);
+
 }  // namespace matlearn::time

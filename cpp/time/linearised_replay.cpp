@@ -1,5 +1,7 @@
 #include "time/linearised_replay.hpp"
 
+#include "time/integrator.hpp"
+
 #include <cmath>
 #include <sstream>
 
@@ -93,9 +95,6 @@ MatX3 LinearisedReplay::simulate(const fem::Model& model, const MatX3& x0_in, co
   VecX fconst = as_dofs(f_ext);
   for (int i = 0; i < nv_; ++i) fconst.segment<3>(3 * i) += mass[3 * i] * gravity_;
   const bool rayleigh_only = model.correction() == nullptr;
-  const auto& T = model.mesh().tets();
-  const VecX& W = model.mesh().volumes();
-  const VecX& rho = model.density();
   MatX3 out((steps + 1) * nv_, 3);
   if (velocities) velocities->resize((steps + 1) * nv_, 3);
   MatX3 xs = x0_in, vs = v0_in;
@@ -119,19 +118,7 @@ MatX3 LinearisedReplay::simulate(const fem::Model& model, const MatX3& x0_in, co
     const auto v0d = as_dofs(vs);
     for (int d = 0; d < 3 * nv_; ++d)
       if (dof_map_[d] >= 0) g[dof_map_[d]] = mass[d] * (vd[d] - v0d[d]) - h_ * (f[d] + fconst[d]);
-    if (rayleigh_only) {
-      coeff_.resize(nt_);
-      diag_ = mass;
-      for (int e = 0; e < nt_; ++e) {
-        coeff_[e] = h_ * h_ + h_ * st.alpha_K[e];
-        const double cm = h_ * st.alpha_M[e] * rho[e] * W[e] / 4.0;
-        if (cm != 0.0)
-          for (int a = 0; a < 4; ++a) diag_.segment<3>(3 * T(e, a)).array() += cm;
-      }
-      assembler_->assemble_scaled(st.K, coeff_, diag_, A_);
-    } else {
-      assembler_->assemble(st.K, h_ * h_, st.D, h_, mass, 1.0, A_);
-    }
+    assemble_step_matrix(model, st, h_, mass, rayleigh_only, *assembler_, coeff_, diag_, A_);
     const VecX dv = solve(-g, s);
     if (!dv.allFinite()) {
       std::ostringstream os;
