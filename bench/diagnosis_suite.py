@@ -11,7 +11,7 @@ effect or tuned to a case.
     python bench/diagnosis_suite.py --timing                            # one ~3k-tet diagnosis
 
 Writes bench/results/diagnosis_suite.json (named set) or diagnosis_suite_random.json (random
-set): {"cases": [{case, true_effects, verdict, top1_correct, region_iou, gap_before_pct,
+set, seed 1; diagnosis_suite_random_N.json for seed N): {"cases": [{case, true_effects, verdict, top1_correct, region_iou, gap_before_pct,
 gap_after_pct, wall_s, ...}], "totals": {...}}. Per-case results are cached in the work folder,
 so an interrupted run resumes. --timing adds totals.timing_3k (s) to diagnosis_suite.json.
 
@@ -240,6 +240,8 @@ def main(argv=None):
     ap.add_argument("--set", choices=("named", "random"), default="named")
     ap.add_argument("--seed", type=int, default=1, help="seed of the random set")
     ap.add_argument("--cases", type=int, default=10, help="size of the random set")
+    ap.add_argument("--build-only", action="store_true",
+                    help="build the cases (truth recordings, effect sizes) without diagnosing them")
     ap.add_argument("--timing", action="store_true",
                     help="time one diagnosis of a ~3k-tet model with two recordings")
     args = ap.parse_args(argv)
@@ -251,7 +253,8 @@ def main(argv=None):
     if args.set == "random":
         specs = random_specs(args.seed, args.cases)
         work = Path(args.work) if args.work else ROOT / "work" / f"diagnosis_suite_random_{args.seed}"
-        res = ROOT / "results" / "diagnosis_suite_random.json"
+        suffix = "" if args.seed == 1 else f"_{args.seed}"
+        res = ROOT / "results" / f"diagnosis_suite_random{suffix}.json"
         seed0 = 1000 * args.seed
     else:
         specs = named_specs()
@@ -265,6 +268,12 @@ def main(argv=None):
     unknown = [n for n in names if n not in specs]
     if unknown:
         raise SystemExit(f"unknown case(s) {unknown}; cases: {list(specs)}")
+    if args.build_only:
+        for name in names:
+            seed = seed0 + list(specs).index(name)
+            build_case(work, name, specs[name], seed=seed, reuse=not args.fresh)
+            print(f"{name}: built, effect {effect_size(work, name, specs[name], seed)}", file=sys.stderr, flush=True)
+        return
     rows = run_set(specs, work, names, args.fresh, args.rediagnose, seed0, args.collect)
     out = {"set": args.set, "seed": args.seed if args.set == "random" else None,
            "cases": rows, "totals": totals(rows)}

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import fitting, history, where
+from . import fitting, history, ranking, where
 from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContext, describe
 from .problem import Problem
 
@@ -33,10 +33,7 @@ from .problem import Problem
 GAP_FACTOR = 2.5
 EXPLAINED_MIN = 0.5  # an effect must explain this fraction of the residual above the floor
 ADD_FACTOR = 0.6  # a further effect must cut (rss + floor) to this fraction
-FLOOR_TIE = 1.5  # fits that both bring the residual down to ~the floor cannot be told apart
-PRIOR = ("stiffness_scale", "rayleigh_damping", "poisson_ratio", "tension_nonlinearity",
-         "compression_nonlinearity", "strain_dependent_damping", "support_compliance",
-         "heterogeneity", "density")  # tie-break order: the commoner modelling error first
+PRIOR = ranking.PRIOR
 # nested families: larger -> (smaller, embedding of the smaller's parameters in the larger's)
 NESTS = {
     "strain_dependent_damping": ("rayleigh_damping", lambda t: [t[0], t[1], 0.0, 0.0]),
@@ -111,7 +108,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
 
     # ---- discretisation-compensated baseline and the floor
     sigma = P.noise_sigma() / P.object_size
-    base_ctx, rss_disc, theta_disc = _discretisation(P, ctx, say)
+    base_ctx, rss_disc, theta_disc, (d_res, d_scale) = _discretisation(P, ctx, say)
     ctx = base_ctx
     r0 = fitting.residual_of(P, ctx, {})
     rss0 = float(r0 @ r0)
@@ -146,6 +143,13 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             th, rss = fitting.linear_fit(Jn, r0)
         cheap[name] = (th, rss)
     cheap["density"] = (-cheap["stiffness_scale"][0], cheap["stiffness_scale"][1])
+    # what each family could gain by mimicking the mesh's discretisation error (ranking.py)
+    credit = ranking.discretisation_credit(J, d_res, slice(0, len(d_res)), d_scale,
+                                           j_offset=J["stiffness_scale"][:, 0], with_offset=WITH_NUISANCE,
+                                           region=(Jp, fitting.locate_region))
+    credit["density"] = credit["stiffness_scale"]
+    tol = {n: ranking.noise_tolerance(rss_noise, len(r0), _dof(n)) for n in cheap}
+    say("discretisation credit: " + ", ".join(f"{n} {c:.2e}" for n, c in credit.items()))
     order = sorted(cheap, key=lambda n: fitting.score(cheap[n][1], _dof(n), n_eff, rss_floor))
     say("cheap fits (predicted rss): " + ", ".join(f"{n} {cheap[n][1]:.3e}" for n in order))
 
@@ -179,7 +183,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         f = fits["stiffness_scale"]
         fits["density"] = fitting.Fit("density", {"density": -f.params["stiffness_scale"]}, f.rss,
                                       f.dof, 0, f.history)
-    ranked = _rank(fits, cheap, order, n_eff, rss_floor, rss0)
+    ranked = _rank(fits, cheap, order, n_eff, rss_floor, rss0, credit, tol)
 
     # ---- verdict
     # above: beyond the floor (which already assumes the truth is the continuum); clear: beyond
@@ -203,8 +207,13 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         return cv[key]
 
     if above:
-        best = _resolve_nested(ranked, cv_of, rss_floor, say)
-        _sort(ranked)
+        best, forced = _resolve_nested(ranked, cv_of, credit, tol, say)
+        ranking.confounded(ranked, credit, tol, rss0, forced)
+        _add_nested_ties(ranked, forced)
+        ranked[:] = ranking.order(ranked, credit, tol, forced, grain=0.05 * rss_floor)
+        if best is not ranked[0] and best["name"] in ranked[0]["confounded_with"] + [ranked[0]["name"]]:
+            ranked.remove(best)
+            ranked.insert(0, best)
         fit = best["_fit"]
         ok = fit is not None and _explained_excess(fit.rss, rss0, rss_floor) >= EXPLAINED_MIN
         if ok and not significant:
@@ -223,7 +232,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                 selected = polished
         elif significant:
             verdict = ["unexplained"]
-    hist = history.check(P, ctx, selected, rss_floor, say) if above else None
+    hist = history.check(P, ctx, selected, rss_floor, say, add_factor=ADD_FACTOR, stateless=J) if above else None
     if hist is not None and hist["detected"]:
         verdict = ["history_dependence"] + [v for v in verdict if v != "unexplained"]
     say(f"verdict {verdict}")
@@ -319,7 +328,11 @@ def _explained_excess(rss, rss0, floor):
     return float((rss0 - rss) / max(rss0 - floor, 1e-300))
 
 
-def _rank(fits, cheap, order, n_eff, floor, rss0):
+def _rank(fits, cheap, order, n_eff, floor, rss0, credit, tol):
+    """Rows {name, _fit, rss, score, explained, confounded_with} in evidence order (ranking.py):
+    a fit leads another only when its residual is lower by more than its discretisation credit
+    and the noise; fits that cannot be told apart are confounded, and the prior order leads
+    among them."""
     rows = []
     for name in order:
         fit = fits.get(name)
@@ -327,65 +340,56 @@ def _rank(fits, cheap, order, n_eff, floor, rss0):
         rows.append({"name": name, "_fit": fit, "rss": rss,
                      "score": fitting.score(rss, _dof(name), n_eff, floor),
                      "explained": float(np.clip((rss0 - rss) / max(rss0, 1e-300), 0, 1))})
-    for r in rows:
-        r["confounded_with"] = []
-    # two simulated fits explain the data equally when their residuals differ by less than half
-    # the floor, or when both reach the floor (what is left is noise and discretisation)
-    sim = [r for r in rows if r["_fit"] is not None]
-    for a in sim:
-        for b in sim:
-            if a is b:
-                continue
-            ea, eb = rss0 - a["rss"], rss0 - b["rss"]
-            big = max(ea, eb)
-            both_at_floor = max(a["rss"], b["rss"]) <= FLOOR_TIE * floor
-            if (big > 0 and min(ea, eb) > 0 and a["rss"] < 0.5 * rss0
-                    and (abs(ea - eb) <= 0.5 * floor or both_at_floor)):
-                a["confounded_with"].append(b["name"])
-    # rank: simulated fits first, by score; within a confounded group by the prior order (the
-    # commoner, simpler modelling error first), so a tie is flagged instead of decided by noise
-    return _sort(rows)
+    ranking.confounded(rows, credit, tol, rss0)
+    return ranking.order(rows, credit, tol, grain=0.05 * floor)
 
 
-def _sort(rows):
-    eff = {r["name"]: min([r["score"]] + [x["score"] for x in rows if x["name"] in r["confounded_with"]])
-           for r in rows}
-    rows.sort(key=lambda r: (r["_fit"] is None, round(eff[r["name"]], 6), PRIOR.index(r["name"])))
-    return rows
+def _add_nested_ties(rows, forced):
+    """A nested pair the data cannot decide (ties recorded by _resolve_nested) is confounded."""
+    ties = forced.get("_ties", [])
+    for a, b in ties:
+        for r in rows:
+            if r["name"] == a and b not in r["confounded_with"]:
+                r["confounded_with"].append(b)
+            if r["name"] == b and a not in r["confounded_with"]:
+                r["confounded_with"].append(a)
 
 
-def _resolve_nested(ranked, cv_of, floor, say):
+def _resolve_nested(ranked, cv_of, credit, tol, say):
     """The best-ranked family, with a nested pair decided on evidence: the larger family (e.g.
     strain-dependent damping, which contains Rayleigh damping) is preferred only when both its
-    information criterion and its leave-one-recording-out residual beat the smaller one's
-    (with one train recording, the criterion alone). When exactly one of the two prefers it,
-    the data cannot tell them apart: the smaller one is reported, confounded with the larger."""
+    fit beats the smaller one's (ranking.beats: beyond its discretisation credit) and its
+    leave-one-recording-out residual is lower (with one train recording, the fit alone). When
+    exactly one of the two prefers it, the data cannot tell them apart: the smaller one is
+    reported, confounded with the larger. Returns (best row, forced decisions for
+    ranking.order: {winner: loser, "_ties": [(a, b)]})."""
     best = ranked[0]
     rows = {r["name"]: r for r in ranked}
+    forced = {}
     pair = None
     for big, (small, _) in NESTS.items():
         if best["name"] in (big, small) and rows.get(big, {}).get("_fit") and rows.get(small, {}).get("_fit"):
             pair = (rows[big], rows[small])
     if pair is None:
-        return best
+        return best, forced
     big, small = pair
     lb, ls = (cv_of(r["name"], r["_fit"]) for r in pair)
     # the extra parameters of the larger family may fit discretisation error on top of what the
-    # smaller one does: its gain must exceed the floor, and its criterion and cross-validation
-    # must agree
+    # smaller one does: its gain must exceed what it can mimic of the discretisation error (its
+    # credit, ranking.py), and its criterion and cross-validation must agree
     gain = small["rss"] - big["rss"]
-    by_score = big["score"] < small["score"] and gain > floor
+    by_score = ranking.beats(big, small, credit, tol)
     by_cv = by_score if lb is None else lb < ls
     say(f"nested {big['name']} vs {small['name']}: score {big['score']:.1f} vs {small['score']:.1f}, "
-        f"rss gain {gain:.3e} (floor {floor:.3e}), leave-one-recording-out rss {lb} vs {ls}")
-    for r in pair:
-        r["confounded_with"] = [c for c in r["confounded_with"] if c not in (big["name"], small["name"])]
+        f"rss gain {gain:.3e} (credit {credit.get(big['name'], 0):.3e}), "
+        f"leave-one-recording-out rss {lb} vs {ls}")
     if by_score and by_cv:
-        return big
+        forced[big["name"]] = small["name"]
+        return big, forced
+    forced[small["name"]] = small_wins = big["name"]
     if by_score or by_cv:
-        big["confounded_with"].append(small["name"])
-        small["confounded_with"].append(big["name"])
-    return small
+        forced["_ties"] = [(small["name"], small_wins)]
+    return small, forced
 
 
 def _forward_select(P, ctx, selected, ranked, verdict, n_eff, floor, rss0, say, max_effects=3):
@@ -431,7 +435,10 @@ def _discretisation(P, ctx, say):
     stiffness offset in that interval is therefore not evidence of any effect: the baseline every
     family is fitted on top of takes the data's best offset clipped to it. The floor is what the
     offset cannot absorb, scaled by (4/3)^2, plus the marker noise (added by the caller).
-    Returns (baseline context, floor rss, offset theta)."""
+    Returns (baseline context, floor rss, offset theta, (d, scale)): d the coarse-minus-refined
+    marker residual left after the offset on the first train recording (the rows of that
+    recording in the stacked train residual), scale the factor that turns its rss into floor
+    units (for ranking.discretisation_credit)."""
     from dataclasses import replace
 
     from .problem import Problem as _Problem
@@ -453,6 +460,7 @@ def _discretisation(P, ctx, say):
     n_all = sum(int(r.seen.sum()) for r in P.train)
     share = n_all / max(sum(int(r.seen.sum()) for r in recs), 1)
     theta_r = float(fit.params["stiffness_scale"][0])
+    d_res = fitting.residual_of(P, ctx, fit.params, recs) - rf
     lo, hi = sorted((0.55 * theta_r, 4.0 / 3.0 * theta_r))
     data = fitting.refine(P, ctx, ["stiffness_scale"], {"stiffness_scale": [theta_r]}, iterations=2)
     theta = float(np.clip(data.params["stiffness_scale"][0], lo, hi))
@@ -465,4 +473,4 @@ def _discretisation(P, ctx, say):
     say(f"discretisation: coarse-vs-refined rss {float((rc - rf) @ (rc - rf)):.3e}, after "
         f"stiffness offset {fit.rss:.3e}; offset range [{np.exp(lo):.3f}, {np.exp(hi):.3f}], "
         f"data {np.exp(data.params['stiffness_scale'][0]):.3f}")
-    return new, float(rss_disc), theta
+    return new, float(rss_disc), theta, (d_res, (4.0 / 3.0) ** 2 * share)

@@ -1,0 +1,122 @@
+"""Ranking the fitted families on evidence (method.md section 9, "which").
+
+Every fit leaves a train residual rss. A lower rss is evidence for a family only beyond what the
+family could have gained by mimicking the mesh's discretisation error (the structure the coarse
+model misses against the refined mesh, which is present in every recording whatever the
+effect): the family's *discretisation credit*, the part of the measured discretisation residual
+that the family's own sensitivities can absorb (linearised, scaled like the floor). A family
+that mimics volumetric locking (a lower Poisson ratio) or the coarse mesh's stiff clamp gets a
+large credit; a uniform stiffness scale gets none (the baseline already carries the best
+stiffness offset).
+
+    a beats b  <=>  rss_b - rss_a > credit_a + tol_a  and  score_a < score_b
+
+(tol: the noise fluctuation of an rss difference plus the noise a's parameters can fit). Two fits
+neither of which beats the other cannot be told apart by the data: they are reported as
+`confounded_with` each other. Among such fits the most specific explanation leads: the family
+with the smallest discretisation credit, whose fit is the least likely to be an artefact of the
+mesh (a family that can mimic anything explains a tie least); only fits of equal credit (density
+and stiffness scale, exactly) are ordered by the prior (the commoner modelling error first). The
+order is built greedily: the next row is, among the rows no remaining row beats, the most
+specific one.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import fitting
+
+PRIOR = ("stiffness_scale", "rayleigh_damping", "poisson_ratio", "tension_nonlinearity",
+         "compression_nonlinearity", "strain_dependent_damping", "support_compliance",
+         "heterogeneity", "density")  # tie-break order: the commoner modelling error first
+
+
+def _prior(name):
+    return PRIOR.index(name) if name in PRIOR else len(PRIOR)
+
+
+def _specificity(credit: float, grain: float) -> float:
+    return float(np.floor(credit / grain)) if grain > 0 else float(credit)
+
+
+def noise_tolerance(rss_noise: float, n_samples: int, dof: int) -> float:
+    """Fluctuation of an rss difference that noise alone explains: two standard deviations of a
+    chi-square noise rss (rss_noise * 2 sqrt(2 / N)) plus the noise `dof` parameters can fit."""
+    n = max(int(n_samples), 1)
+    return float(rss_noise * (2.0 * np.sqrt(2.0 / n) + dof / n))
+
+
+def discretisation_credit(J: dict, d: np.ndarray, rows: slice, scale: float, j_offset=None,
+                          with_offset=(), region=None) -> dict:
+    """{family: rss of the discretisation residual `d` the family's linearised columns absorb,
+    times `scale`}. J: {family: (N, k) sensitivities over all train rows}; rows: the rows of
+    `d`'s recording(s); j_offset: the stiffness offset column (fitted with the families in
+    `with_offset`, as in their data fits); region: (J_patches, locate) to re-locate a region on
+    `d` for "heterogeneity" (a located region may be placed where the mesh errs most)."""
+    d = np.asarray(d, float)
+    base = float(d @ d)
+    out = {}
+    for name, Jn in J.items():
+        A = np.asarray(Jn, float)[rows]
+        if name == "heterogeneity" and region is not None:
+            Jp, locate = region
+            sel, _ = locate(Jp[rows], d)
+            A = np.stack([Jp[rows][:, sel].sum(axis=1), Jp[rows][:, ~sel].sum(axis=1)], axis=1)
+        if name in with_offset and j_offset is not None:
+            A = np.column_stack([A, np.asarray(j_offset, float)[rows]])
+        _, rss = fitting.linear_fit(A, d)
+        out[name] = float(max(base - rss, 0.0) * scale)
+    return out
+
+
+def beats(a: dict, b: dict, credit: dict, tol: dict) -> bool:
+    """a's fit is better than b's by more than discretisation mimicry and noise can explain."""
+    gain = b["rss"] - a["rss"]
+    return bool(gain > credit.get(a["name"], 0.0) + tol.get(a["name"], 0.0) and a["score"] < b["score"])
+
+
+def order(rows: list, credit: dict, tol: dict, forced: dict | None = None, grain: float = 0.0) -> list:
+    """Rows (dicts with name, rss, score, _fit) in evidence order; simulated fits first (their
+    rss is measured), then the linearised ones by score. Sets row["confounded_with"] (simulated
+    fits neither of which beats the other, both explaining at least half of the baseline
+    residual... see `confounded`). forced: {winner: loser} decisions taken elsewhere (nested
+    pairs), applied as "winner beats loser". grain: credits closer than this are equal (the
+    prior decides between them)."""
+    forced = forced or {}
+    sim = [r for r in rows if r["_fit"] is not None]
+    rest = sorted((r for r in rows if r["_fit"] is None), key=lambda r: (r["score"], _prior(r["name"])))
+
+    def wins(a, b):
+        if forced.get(a["name"]) == b["name"]:
+            return True
+        if forced.get(b["name"]) == a["name"]:
+            return False
+        return beats(a, b, credit, tol)
+
+    out, remaining = [], list(sim)
+    while remaining:
+        free = [r for r in remaining if not any(wins(o, r) for o in remaining if o is not r)]
+        if not free:  # a cycle of forced decisions: fall back to the score
+            free = [min(remaining, key=lambda r: r["score"])]
+        nxt = min(free, key=lambda r: (_specificity(credit.get(r["name"], 0.0), grain),
+                                       _prior(r["name"]), r["score"]))
+        out.append(nxt)
+        remaining.remove(nxt)
+    return out + rest
+
+
+def confounded(rows: list, credit: dict, tol: dict, rss0: float, forced: dict | None = None) -> None:
+    """row["confounded_with"]: the simulated fits that explain the data as well as this one
+    (neither beats the other; both explain something and leave less than half the baseline
+    residual, so the tie is between explanations, not between two failures)."""
+    forced = forced or {}
+    sim = [r for r in rows if r["_fit"] is not None]
+    for r in rows:
+        r["confounded_with"] = []
+    for a in sim:
+        for b in sim:
+            if a is b or forced.get(a["name"]) == b["name"] or forced.get(b["name"]) == a["name"]:
+                continue
+            explains = min(rss0 - a["rss"], rss0 - b["rss"]) > 0 and max(a["rss"], b["rss"]) < 0.5 * rss0
+            if explains and not beats(a, b, credit, tol) and not beats(b, a, credit, tol):
+                a["confounded_with"].append(b["name"])
