@@ -4,6 +4,7 @@ in the run folder (a resumed run does not track again), learned with the observa
 chosen from the scan noise, and the learned model cuts the held-out error (scored on an exact
 marker recording of a different load) by a stated factor."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -43,15 +44,13 @@ def scanned(tmp_path_factory):
     scan_recording(X, rec.times, np.asarray(sc.mesh.surface_faces), default_cameras(V, 1), settings,
                    path=root / "train_scan.npz", at_rest_initially=rec.at_rest_initially)
     recs = [(root / "train_scan.npz", "train")] + [(p, r) for p, r in sc.recordings if r == "test"]
-    from dataclasses import replace
-
     return save_scene(replace(sc, recordings=recs), root / "scene.toml")
 
 
 def test_learn_tracks_clouds_chooses_lambda_and_cuts_held_out_error(scanned, tmp_path):
     sc = load_scene(scanned)
     assert load_recording(sc.recording_paths("train")[0]).num_markers == 0  # clouds only
-    opts = LearnOptions(iterations=1, modes=12, centers=12, ridges=(1e-6,))
+    opts = LearnOptions(iterations=2, modes=12, centers=12, ridges=(1e-6,))
     res = learn(sc, tmp_path / "run", opts, log=None)
     (info,) = res["tracking"].values()
     assert info["role"] == "train" and not info["cached"]
@@ -67,17 +66,27 @@ def test_learn_tracks_clouds_chooses_lambda_and_cuts_held_out_error(scanned, tmp
                                                        info["frame_dt_s"], sc.time_step))
     assert 1e-3 < res["lambda"] < 1.0
     nominal = res["nominal"]["test"]["max_error_pct"]
+    tests = [m["test"]["max_error_pct"] for m in res["metrics"]]
     learned = res["final"]["test"]["max_error_pct"]
-    print("held-out max error nominal", nominal, "learned", learned, "lambda", res["lambda"])
-    assert nominal > 2.0
-    # Stated factor: one iteration from single-view scans cuts the held-out max error (a 1.6x
-    # larger load than the train recording's) by at least 1.5x (measured 1.7-1.8x). (A second
-    # iteration lowers the train error 4x but its held-out score is fragile: measured 0.98 %
-    # in one run and a blow-up in another with the same train errors; see the session notes.)
-    assert learned < nominal / 1.5, (nominal, learned)
+    print("held-out max error per iteration", tests, "lambda", res["lambda"])
+    assert nominal > 2.0 and len(tests) == 3
+    # Stated factor: two iterations from single-view scans cut the held-out max error (a 1.6x
+    # larger load than the train recording's, so its stretches leave the fitted range) by at
+    # least 3x (measured 7.8x; other scan-noise seeds 2.2-5x). Before the fit's tangent penalty
+    # the second iteration took it to 337 % (fit.py docstring).
+    assert learned < nominal / 3, tests
+    assert max(tests[1:]) < nominal / 2, tests  # no iteration explodes on the held-out motion
     # The learn loop never accepts an update that raises the train error.
     train = [m["train"]["max_error_pct"] for m in res["metrics"]]
-    assert all(b <= a for a, b in zip(train, train[1:])) and train[-1] < train[0] / 1.3, train
+    assert all(b <= a for a, b in zip(train, train[1:])) and train[-1] < train[0] / 3, train
+    # Well-conditioned: a 1e-12 relative change of the learned weights moves the held-out
+    # error by round-off only (the unregularised fit's model moved by 5 % at 1e-14: chaotic).
+    p = res["params"]
+    rng = np.random.default_rng(0)
+    q = replace(p, weights=p.weights * (1 + 1e-12 * rng.standard_normal(p.weights.shape)))
+    test_rec = res["scene"].recordings_with_role("test")
+    moved = score_params(res["scene"], q, test_rec)
+    assert moved == pytest.approx(learned, rel=1e-6), (moved, learned)
     # Resume: the tracked clouds are reused from the run folder, not tracked again.
     tracked = tmp_path / "run" / "tracked"
     stamp = {p.name: p.stat().st_mtime_ns for p in tracked.iterdir()}
@@ -85,6 +94,16 @@ def test_learn_tracks_clouds_chooses_lambda_and_cuts_held_out_error(scanned, tmp
     assert all(v["cached"] for v in again["tracking"].values())
     assert {p.name: p.stat().st_mtime_ns for p in tracked.iterdir()} == stamp
     assert again["final"]["test"]["max_error_pct"] == pytest.approx(learned, rel=1e-9)
+
+
+def score_params(scene, params, recs):
+    """Max held-out marker error (% of size) of a correction on recordings `recs`."""
+    from matlearn.embedding import embed_points
+    from matlearn.learning.loop import _errors
+
+    errs, _ = _errors(scene, scene.model(params.correction()), recs,
+                      [embed_points(scene.mesh, r.marker_rest) for r in recs])
+    return max(float(e.max()) for e in errs)
 
 
 def test_tracking_cache_is_invalidated_when_the_clouds_change(scanned, tmp_path):
@@ -100,7 +119,6 @@ def test_tracking_cache_is_invalidated_when_the_clouds_change(scanned, tmp_path)
 
     p = tmp_path / "moved" / "train_scan.npz"
     save_recording(rec, p)
-    from dataclasses import replace
 
     moved = replace(sc, recordings=[(p, "train")])
     (w,) = track_scene(moved, tmp_path / "t")[1].values()

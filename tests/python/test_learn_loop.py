@@ -114,7 +114,8 @@ def test_ridge_search(case, tmp_path, monkeypatch, search, expect_fits, expect_r
 
     monkeypatch.setattr(loop_mod, "fit_correction", fake_fit)
     lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
-                          LearnOptions(ridges=(1e-6, 1e-4, 1e-2), ridge_search=search, **{"modes": 4}), log=None)
+                          LearnOptions(ridges=(1e-6, 1e-4, 1e-2), smoothing=(0.1,), ridge_search=search,
+                                       **{"modes": 4}), log=None)
     errors = {1e-6: 1.5, 1e-4: 0.9, 1e-2: 0.8}  # current error 1.0: 1e-4 is the first to improve
     monkeypatch.setattr(lr, "_train_error", lambda p: (errors[float(p.weights[0, 0])], [], []))
     p, info, _ = lr._update(None, None, None, 1.0, 0)

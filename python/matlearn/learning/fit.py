@@ -25,9 +25,28 @@ with B_j the force map and G_j the stiffness-damping map (column e = -K_e v_e). 
 projected on the space-time basis (Phi^T ...): the space-time solve determines only the reduced
 forces; the component of fc orthogonal to span(M Phi) is the elastic response to the basis
 truncation, not a material error, and fitting it would learn the truncation. The problem is
-linear in (w, A, wa, a0): one ridge-regularised least-squares solve over all frames; the normal
+linear in (w, A, wa, a0): one regularised least-squares solve over all frames; the normal
 equations are accumulated over all frames of a recording in one C++ call
 (`_core.fit.normal_equations`, cpp/learning/fit_normal_equations.cpp).
+
+Regularisation (`smooth`): the fit minimises
+
+    |D theta - y|^2 + smooth |y|^2 mean_i |J_rbf(s_i)|_F^2 / M^2    (+ a tiny numerical ridge)
+
+with J_rbf(s) = sum_k w_k grad g_k(s)^T the tangent of the RBF part at the fitted stretch
+samples s_i and M = 2 mu + lam the nominal P-wave modulus: a nonlinear stress correction whose
+tangent is a fraction t of the nominal stiffness costs smooth t^2 of the whole target energy.
+The linear part A (a global change of the moduli) is not penalised. Why: the stretches of a
+recording span a few percent, the k-means centres are ~eps apart and the multiquadric kernels
+are nearly collinear there, so without it the normal matrix is numerically singular and the
+tiny column-scaled ridge left weights of ~1e6 Pa whose cancelling tangents exceeded the nominal
+modulus: inside the fitted range it reproduced the training forces, but just beyond it (a
+larger held-out motion, the C1 extension continues with the edge slope) the total tangent
+turned negative and the simulation blew up (tests/python/test_learn_clouds.py: held-out 337 %
+of the object size after a second iteration; a 1e-14 relative change of the weights moved it
+by 5 %, i.e. chaotic, which is why two runs differing only in round-off gave 0.98 % and 337 %).
+The loop (`LearnOptions.smoothing`) picks the weight among a few candidates by the forward
+*train* error.
 """
 from __future__ import annotations
 
@@ -145,25 +164,43 @@ def correction_force(model_corr, model_nom, x, v) -> np.ndarray:
     return (np.asarray(model_corr.forces(x, v)) - np.asarray(model_nom.forces(x, v))).ravel()
 
 
+def kernel_gradients(S: np.ndarray, centers: np.ndarray, eps: float, box=(None, None)) -> np.ndarray:
+    """Gradients (k, c, 3) of the elastic kernels (rbf_kernel, with its box extension) at
+    stretches S (k, 3); the same formula as extended_kernel in cpp/correction."""
+    S = np.asarray(S, float)
+    sc = np.clip(S, box[0], box[1]) if box[0] is not None else S
+    d = sc[:, None, :] - centers[None]
+    phi = np.sqrt((d ** 2).sum(-1) + eps * eps)
+    g = d / phi[..., None]
+    inside = (S == sc)[:, None, :]
+    dd = (d * (S - sc)[:, None, :]).sum(-1)
+    return np.where(inside, g * (1.0 - dd / phi**2)[..., None], g)
+
+
 def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_model=None,
                    damping: bool = True, ridge: float = 1e-6, seed: int = 0, stride: int = 1,
-                   centers=None, clamp: bool = True) -> tuple[RbfParams, dict]:
+                   centers=None, clamp: bool = True, smooth: float = 0.0,
+                   max_penalty_samples: int = 4000) -> tuple[RbfParams, dict]:
     """Least-squares RBF correction from control forces (module docstring).
 
     nominal_model: the model without correction; frames: list of FitFrames; current_model: the
     same model with the current correction (or None); damping: also fit the strain-dependent alpha_K change;
     ridge: Tikhonov weight relative to the mean diagonal of the (column-normalised) normal
     matrix; stride: use every stride-th frame; centers: (C, eps) to reuse instead of k-means;
-    clamp: clamp the kernels to the centres' box (RbfParams.box).
+    clamp: clamp the kernels to the centres' box (RbfParams.box); smooth: weight of the
+    tangent penalty of the RBF part (module docstring; 0: none), evaluated on at most
+    max_penalty_samples of the fitted stretches (drawn with `seed`).
     Returns (params, info) with info = dict(residual_ratio, frames, parameters)."""
     if not frames:
         raise ValueError("fit_correction: no frames")
     if nominal_model is None:
         raise ValueError("fit_correction: nominal_model is None")
+    samples = None
+    if centers is None or smooth > 0:
+        samples = np.concatenate([np.asarray(_core.fit.principal_stretches(
+            nominal_model, np.asarray(fr.X)[::stride])) for fr in frames])
     if centers is None:
-        samples = [np.asarray(_core.fit.principal_stretches(nominal_model, np.asarray(fr.X)[::stride]))
-                   for fr in frames]
-        C, eps = choose_centers(np.concatenate(samples), num_centers, seed)
+        C, eps = choose_centers(samples, num_centers, seed)
     else:
         C, eps = centers
     C = np.ascontiguousarray(C, float)
@@ -194,6 +231,19 @@ def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_m
     scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
     Ns = N / scale[:, None] / scale[None]
     reg = ridge * np.trace(Ns) / p
+    if smooth > 0:
+        rng = np.random.default_rng(seed)
+        S = samples if len(samples) <= max_penalty_samples else samples[
+            rng.choice(len(samples), max_penalty_samples, replace=False)]
+        G = kernel_gradients(S, C, eps, box)
+        Pk = np.einsum("ikb,ilb->kl", G, G) / len(S)  # mean |sum_k w_k grad g_k|^2 = w^T Pk w
+        modulus = float(np.median(2 * np.asarray(nominal_model.mu) + np.asarray(nominal_model.lam)))
+        Pen = np.zeros((p, p))
+        for a in range(3):
+            sl = slice(a * (c + 3), a * (c + 3) + c)
+            Pen[sl, sl] = Pk
+        Pen *= smooth * yy / modulus**2
+        Ns = Ns + Pen / scale[:, None] / scale[None]
     theta = np.linalg.solve(Ns + reg * np.eye(p), rhs / scale) / scale
     res2 = max(yy - 2 * theta @ rhs + theta @ N @ theta, 0.0)
     We = theta[:ne].reshape(3, c + 3)  # per stress component: [w (c), A row (3)]
@@ -206,5 +256,5 @@ def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_m
         wa, a0 = np.zeros(0), 0.0
     params = RbfParams(C, W, A, bias, wa, a0, eps, clamp)
     info = {"residual_ratio": float(np.sqrt(res2 / yy)) if yy > 0 else 0.0, "frames": count,
-            "parameters": p, "centers": c, "epsilon": eps}
+            "parameters": p, "centers": c, "epsilon": eps, "smooth": smooth}
     return params, info

@@ -20,13 +20,19 @@ their tracked markers, with the observation weight chosen from the scan noise an
 Every iteration is checkpointed (`RUN/checkpoint/iter_<k>.npz` + `RUN/metrics.json`), so a
 killed run continues with `resume=True` from its last finished iteration and gives the same
 result (all steps are deterministic for a given seed; the checkpoint stores the fitted
-correction and the space-time trajectories at full precision).
+correction and the space-time trajectories at full precision). metrics.json also records a
+fingerprint of the code that produced it (:func:`code_fingerprint`) and a resume with other
+code is refused: a checkpointed correction re-scored by changed code is a different model
+(bench/visibility.json's markers_13 "wrinkle", 0.05295 -> 0.05311 %, was exactly that: a
+checkpoint written before the RBF box extension changed from frozen kernels to the C1
+extension, re-scored after it).
 
 Decisions (basis, lambda, accepting an update, stopping, which iterate to keep) use the *train*
 recordings only; test recordings are scored for the metrics and never fed back.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -45,17 +51,40 @@ from .pod import pod_basis
 from .spacetime import build_problem, constrained_vertices, solve_spacetime
 
 
+_RESULT_MODULES = ("learning", "clouds", "replay.py", "embedding.py", "scene.py", "materials.py",
+                   "recording.py", "meshes.py")
+
+
+def code_fingerprint() -> str:
+    """sha1 of what a learning result depends on: the compiled core (`matlearn._core`) and the
+    Python modules of the learning path (`_RESULT_MODULES`)."""
+    from .. import _core
+
+    pkg = Path(__file__).resolve().parent.parent
+    files = [Path(_core.__file__)]
+    for name in _RESULT_MODULES:
+        q = pkg / name
+        files += sorted(q.rglob("*.py")) if q.is_dir() else [q]
+    h = hashlib.sha1()
+    for f in files:
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 @dataclass
 class LearnOptions:
     """iterations: max outer iterations; lam: dimensionless observation weight (None: 1 for
     marker recordings, chosen from the noise for point clouds); modes: POD modes r; centers:
     RBF centres; damping: learn the strain-dependent alpha_K change; gn_iterations:
     Gauss-Newton steps per space-time solve; pod_window: fraction of each trajectory used for
-    the basis; fit_frames: max frames per recording in the fit; ridges: relative Tikhonov
-    weights tried per iteration (the best train error wins); ridge_search: "all" (fit and
-    forward-simulate every ridge weight) or "first" (in the given order, stop at the first
+    the basis; fit_frames: max frames per recording in the fit; smoothing: weights of the
+    fit's tangent penalty (fit.py: the RBF part's tangent relative to the nominal modulus)
+    and ridges: relative numerical Tikhonov weights; every (smoothing, ridge) pair is a
+    candidate per iteration (the best train error wins); ridge_search: "all" (fit and
+    forward-simulate every candidate) or "first" (in the given order, stop at the first
     whose train error is lower than the current one: one fit + one forward simulation per
-    iteration instead of len(ridges), for large cases, bench/learning_scale.py); patience: iterations without
+    iteration instead of one per candidate, for large cases, bench/learning_scale.py); patience: iterations without
     improvement before stopping; seed: k-means seed; backtrack: shortened update steps tried
     when the full update does not lower the train error; track: tracking options for cloud
     recordings (None: defaults)."""
@@ -68,12 +97,13 @@ class LearnOptions:
     gn_iterations: int = 6
     pod_window: float = 1.0
     fit_frames: int = 150
-    ridges: tuple = (1e-6, 1e-4, 1e-2)
+    ridges: tuple = (1e-6,)
     ridge_search: str = "all"
     patience: int = 2
     seed: int = 0
     backtrack: tuple = (0.5, 0.25)
     track: TrackOptions | None = None
+    smoothing: tuple = (1e-2, 1e-1, 1.0)
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
@@ -85,6 +115,9 @@ class LearnOptions:
             raise ValueError(f"backtrack steps must lie in (0, 1), got {self.backtrack}")
         if not self.ridges:
             raise ValueError("ridges: at least one ridge weight")
+        self.smoothing = tuple(float(t) for t in self.smoothing)
+        if not self.smoothing or any(not t >= 0 for t in self.smoothing):
+            raise ValueError(f"smoothing: at least one weight, all >= 0, got {self.smoothing}")
         if self.ridge_search not in ("all", "first"):
             raise ValueError(f"ridge_search must be 'all' or 'first', got {self.ridge_search!r}")
 
@@ -157,6 +190,7 @@ class Learner:
         self.emb_test = [embed_points(mesh, r.marker_rest) for r in self.test]
         self.nominal = scene.model()
         self.metrics: list[dict] = []
+        self.code = code_fingerprint()
         self.hist: dict[str, np.ndarray] = {}
         self.lam: float | None = self.opt.lam if self.opt.lam is not None else (None if self.tracking else 1.0)
         self.lam_info: dict = {"source": "option" if self.opt.lam is not None else "marker default"}
@@ -183,8 +217,8 @@ class Learner:
 
     def _write_metrics(self):
         self.run.mkdir(parents=True, exist_ok=True)
-        doc = {"options": asdict(self.opt), "lambda": self.lam, "lambda_choice": self.lam_info,
-               "tracking": self.tracking, "iterations": self.metrics}
+        doc = {"options": asdict(self.opt), "code": self.code, "lambda": self.lam,
+               "lambda_choice": self.lam_info, "tracking": self.tracking, "iterations": self.metrics}
         tmp = self.run / "metrics.json.tmp"
         tmp.write_text(json.dumps(doc, indent=1, default=str))
         tmp.replace(self.run / "metrics.json")
@@ -197,6 +231,10 @@ class Learner:
         if not mfile.exists():
             return None
         doc = json.loads(mfile.read_text())
+        if doc.get("code") != self.code:
+            raise ValueError(f"{self.run} was written by different code (fingerprint {doc.get('code')}, now "
+                             f"{self.code}); resuming would not reproduce an uninterrupted run: start "
+                             f"a new run (or delete {mfile})")
         its = [m for m in doc["iterations"] if "fit" in m and self._ckpt(m["iteration"]).exists()]
         if not its:
             return None
@@ -357,8 +395,8 @@ class Learner:
         return self.finish()
 
     def _update(self, frames, params, current_model, current_err, k):
-        """The next correction: fit one candidate per ridge weight in options.ridges (same
-        centres) and take the one with the lowest forward *train* error (model selection on
+        """The next correction: fit one candidate per (smoothing, ridge) weight pair of the
+        options (same centres) and take the one with the lowest forward *train* error (model selection on
         training data only). The update is accepted only if it lowers the train error;
         otherwise it is shortened (blended towards the current correction) by the factors in
         options.backtrack, and when no step lowers the error the loop has converged (returns
@@ -366,12 +404,13 @@ class Learner:
         opt = self.opt
         cands = []
         centers = (params.centers, params.epsilon) if params is not None else None
-        for ridge in opt.ridges:
+        for ridge, smooth in [(r, s) for s in opt.smoothing for r in opt.ridges]:
             p, info = fit_correction(self.nominal, frames, opt.centers,
                                      current_model=current_model if params is not None else None,
-                                     damping=opt.damping, ridge=ridge, seed=opt.seed + k, centers=centers)
+                                     damping=opt.damping, ridge=ridge, seed=opt.seed + k, centers=centers,
+                                     smooth=smooth)
             centers = (p.centers, p.epsilon)
-            info["ridge"] = ridge
+            info["ridge"], info["smooth"] = ridge, smooth
             err, errs, sims = self._train_error(p)
             info["train_max_error_pct"] = float(err)
             cands.append((err, len(cands), p, info, errs, sims))
@@ -379,7 +418,8 @@ class Learner:
                 break
         cands_best = min(cands, key=lambda c: (c[0], c[1]))
         err, _, p, info, errs, sims = cands_best
-        info["ridge_candidates"] = [{"ridge": c[3]["ridge"], "train_max_error_pct": float(c[0])} for c in cands]
+        info["ridge_candidates"] = [{"ridge": c[3]["ridge"], "smooth": c[3]["smooth"],
+                                     "train_max_error_pct": float(c[0])} for c in cands]
         info["update_step"] = 1.0
         tried = [{"step": 1.0, "train_max_error_pct": float(err)}]
         for t in opt.backtrack:
