@@ -101,7 +101,11 @@ def main():
     ap.add_argument("--baseline-evals", type=int, default=20)
     ap.add_argument("--work", default="/tmp/matlearn_learning_bench")
     ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--merge", nargs="+", default=None,
+                    help="merge the rows of these part files (parallel runs with --out) into --out")
     args = ap.parse_args()
+    if args.merge:
+        return merge(args.merge, Path(args.out))
     names = [args.only] if args.only else args.cases.split(",")
     byname = {f.__name__: f for f in cases.ALL}
     out = Path(args.out)
@@ -111,10 +115,11 @@ def main():
         "machine; errors are max marker errors over each held-out test recording in % of the rest "
         "bounding-box diagonal; the last test recording of each case has a larger deformation than "
         "training. Baseline: co-rotated E, nu, alpha_M, alpha_K fitted by least squares on the same "
-        "train recordings. Learner: LearnOptions defaults (24 RBF centres, ridges 1e-6/1e-4/1e-2 "
-        f"chosen by train error, monotone loop) with at most {args.iterations} iterations; the RBF "
-        "extends linearly beyond the centres' box (fit.py). All rows were produced in one run by "
-        "the code at `code_commit` (loop.py at `loop_commit`). Sphere cases: the truth's Rayleigh "
+        "train recordings. Learner: LearnOptions defaults (24 RBF centres, fit with a tangent penalty "
+        "on the RBF part, weight 0.01/0.1/1 of the nominal modulus chosen per iteration by train "
+        f"error, monotone loop) with at most {args.iterations} iterations; the RBF "
+        "extends linearly beyond the centres' box (fit.py). Each row's `code_commit` (and "
+        "`uncommitted_changes`) says which code produced it. Sphere cases: the truth's Rayleigh "
         "damping acts through the edited tangent (alpha_K K_truth), which the learnable damping "
         "(dalpha(Fh) K_nominal) cannot represent; with the cap displacement-driven the stress is "
         "weakly identified, and the fit trades elastic against damping terms, so the large test "
@@ -131,6 +136,7 @@ def main():
     for name in names:
         print(f"== {name}", flush=True)
         row = run_case(byname[name](), work, args.iterations, args.baseline_evals)
+        row.update({k: doc[k] for k in ("code_commit", "loop_commit", "uncommitted_changes")})
         doc["cases"] = [c for c in doc["cases"] if c["case"] != name] + [row]
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(doc, indent=1))
@@ -141,5 +147,21 @@ def main():
     print_table(doc["cases"])
 
 
+def merge(parts, out: Path) -> int:
+    """Rows of parallel part files (later files win) into `out`, in the order of cases.ALL."""
+    docs = [json.loads(Path(p).read_text()) for p in parts]
+    rows = {}
+    for d in docs:
+        for c in d["cases"]:
+            rows[c["case"]] = c
+    order = {f.__name__: i for i, f in enumerate(cases.ALL)}
+    doc = {k: v for k, v in docs[-1].items() if k != "cases"}
+    doc["code_commit"] = sorted({c.get("code_commit", "unknown") for c in rows.values()})
+    doc["cases"] = sorted(rows.values(), key=lambda c: order.get(c["case"], 99))
+    out.write_text(json.dumps(doc, indent=1))
+    print_table(doc["cases"])
+    return 0
+
+
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
