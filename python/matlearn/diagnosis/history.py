@@ -144,7 +144,7 @@ def check(problem, ctx, selected, rss_floor, say=None, add_factor=0.6, stateless
     x = np.zeros(K + 2)
     x_ref, parts_ref, ref = _gauss_newton(problem, ctx, params, recs, x, [0])
     nothing = {"detected": False, "explained": 0.0, "score": 0.0, "parameters": {}}
-    if ref < 2.5 * rss_floor:
+    if ref <= rss_floor:  # nothing left beyond noise and discretisation
         return nothing
     free = list(range(K + 2))
     x_h, _, cost = _gauss_newton(problem, ctx, params, recs, x_ref.copy(), free)

@@ -47,14 +47,18 @@ def noise_tolerance(rss_noise: float, n_samples: int, dof: int) -> float:
 
 
 def discretisation_credit(J: dict, d: np.ndarray, rows: slice, scale: float, j_offset=None,
-                          with_offset=(), region=None) -> dict:
-    """{family: rss of the discretisation residual `d` the family's linearised columns absorb,
-    times `scale`}. J: {family: (N, k) sensitivities over all train rows}; rows: the rows of
-    `d`'s recording(s); j_offset: the stiffness offset column (fitted with the families in
-    `with_offset`, as in their data fits); region: (J_patches, locate) to re-locate a region on
-    `d` for "heterogeneity" (a located region may be placed where the mesh errs most)."""
+                          region=None) -> dict:
+    """{family: rss of the discretisation residual `d` the family's linearised columns absorb
+    beyond what the stiffness offset column `j_offset` absorbs alone, times `scale`}. J:
+    {family: (N, k) sensitivities over all train rows}; rows: the rows of `d`'s recording(s);
+    the offset is a nuisance of every fit (the baseline carries it, and a short offset fit may
+    leave a frequency mismatch in d that any family could take), so a uniform stiffness scale
+    gets no credit; region: (J_patches, locate) to re-locate a region on `d` for
+    "heterogeneity" (a located region may be placed where the mesh errs most)."""
     d = np.asarray(d, float)
     base = float(d @ d)
+    if j_offset is not None:
+        base = fitting.linear_fit(np.asarray(j_offset, float)[rows, None], d)[1]
     out = {}
     for name, Jn in J.items():
         A = np.asarray(Jn, float)[rows]
@@ -62,7 +66,7 @@ def discretisation_credit(J: dict, d: np.ndarray, rows: slice, scale: float, j_o
             Jp, locate = region
             sel, _ = locate(Jp[rows], d)
             A = np.stack([Jp[rows][:, sel].sum(axis=1), Jp[rows][:, ~sel].sum(axis=1)], axis=1)
-        if name in with_offset and j_offset is not None:
+        if j_offset is not None:
             A = np.column_stack([A, np.asarray(j_offset, float)[rows]])
         _, rss = fitting.linear_fit(A, d)
         out[name] = float(max(base - rss, 0.0) * scale)
