@@ -15,9 +15,11 @@ set, seed 1; diagnosis_suite_random_N.json for seed N): {"cases": [{case, true_e
 gap_after_pct, wall_s, ...}], "totals": {...}}. Per-case results are cached in the work folder,
 so an interrupted run resumes. --timing adds totals.timing_3k (s) to diagnosis_suite.json.
 
-top1_correct: the verdict's first effect is a true effect, or a true effect is listed in its
-`confounded_with` (density and stiffness scale cannot be told apart when every load is gravity
-or a prescribed motion); for the control case: the verdict is []. gap_*_pct: held-out max error,
+top1_strict (and totals.top1_strict_accuracy): the verdict's first effect is a true effect (for
+the control: the verdict is []). top1_correct (more generous): the verdict's first effect is a
+true effect, or a true effect is listed in its `confounded_with` (density and stiffness scale
+cannot be told apart when every load is gravity or a prescribed motion); for the control case:
+the verdict is []. gap_*_pct: held-out max error,
 % of object size, before and after the verdict's effects were added. effect_pct (extra): the
 effect's own size, max marker distance between the truth's test recording and its effect-free
 twin's (% of object size; compare with the control's gap, the discretisation).
@@ -133,6 +135,7 @@ def iou(a, b) -> float:
 def score_case(name, spec, result, region_model, wall):
     verdict = result["verdict"]
     true = spec["effects"]
+    strict = verdict == [] if not true else bool(verdict and verdict[0] in true)
     if not true:
         top1 = verdict == []
     elif verdict and verdict[0] in true:
@@ -149,8 +152,16 @@ def score_case(name, spec, result, region_model, wall):
     applied = [v for v in verdict if v in with_gap]
     after = with_gap[applied[-1]]["gap_after"]["max_error_pct"] if applied else before
     return {"case": name, "true_effects": true, "verdict": verdict, "top1_correct": bool(top1),
+            "top1_strict": bool(strict),
             "region_iou": region_iou, "gap_before_pct": before, "gap_after_pct": after,
             "wall_s": wall}
+
+
+def _strict(row) -> bool:
+    v = row.get("verdict")
+    if not row["true_effects"]:
+        return v == []
+    return bool(v and v[0] in row["true_effects"])
 
 
 def totals(rows):
@@ -161,6 +172,9 @@ def totals(rows):
     return {
         "cases": len(rows),
         "top1_accuracy": float(np.mean([r["top1_correct"] for r in eff])) if eff else None,
+        # verdict[0] itself a true effect (no credit for a true effect in its confounded_with)
+        "top1_strict_accuracy": float(np.mean([_strict(r) for r in eff])) if eff else None,
+        "top1_strict_all_cases": f"{sum(_strict(r) for r in rows)}/{len(rows)}",
         "control_clean": all(r["verdict"] == [] for r in ctrl),
         "failed_cases": [r["case"] for r in rows if r.get("error")],
         "mean_region_iou": float(np.mean(ious)) if ious else None,
