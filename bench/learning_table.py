@@ -116,7 +116,7 @@ def main():
         "bounding-box diagonal; the last test recording of each case has a larger deformation than "
         "training. Baseline: co-rotated E, nu, alpha_M, alpha_K fitted by least squares on the same "
         "train recordings. Learner: LearnOptions defaults (24 RBF centres, fit with a tangent penalty "
-        "on the RBF part, weight 0.01/0.1/1 of the nominal modulus chosen per iteration by train "
+        "on the RBF part, weight 0.001/0.01/0.1/1 relative to the nominal modulus, chosen per iteration by train "
         f"error, monotone loop) with at most {args.iterations} iterations; the RBF "
         "extends linearly beyond the centres' box (fit.py). Each row's `code_commit` (and "
         "`uncommitted_changes`) says which code produced it. Sphere cases: the truth's Rayleigh "

@@ -103,7 +103,7 @@ class LearnOptions:
     seed: int = 0
     backtrack: tuple = (0.5, 0.25)
     track: TrackOptions | None = None
-    smoothing: tuple = (1e-2, 1e-1, 1.0)
+    smoothing: tuple = (1e-3, 1e-2, 1e-1, 1.0)
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
