@@ -254,7 +254,8 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         theta = selected.params[name] if (selected and name in selected.params) else (
             fit.params[name] if fit else cheap[name][0])
         entry = {"name": name, "explained": e["explained"], "score": e["score"],
-                 "parameters": describe(name, theta, ctx), "simulated": fit is not None}
+                 "parameters": describe(name, theta, ctx), "simulated": fit is not None,
+                 "discretisation_credit": float(credit.get(name, 0.0))}
         if name in cumulative:
             entry["gap_after"] = cumulative[name]
         else:  # not in the verdict: the effect alone (its refined or its linearised fit)
