@@ -48,17 +48,19 @@ def noise_tolerance(rss_noise: float, n_samples: int, dof: int) -> float:
 
 def discretisation_credit(J: dict, d: np.ndarray, rows: slice, scale: float, j_offset=None,
                           region=None) -> dict:
-    """{family: rss of the discretisation residual `d` the family's linearised columns absorb
-    beyond what the stiffness offset column `j_offset` absorbs alone, times `scale`}. J:
-    {family: (N, k) sensitivities over all train rows}; rows: the rows of `d`'s recording(s);
-    the offset is a nuisance of every fit (the baseline carries it, and a short offset fit may
-    leave a frequency mismatch in d that any family could take), so a uniform stiffness scale
-    gets no credit; region: (J_patches, locate) to re-locate a region on `d` for
-    "heterogeneity" (a located region may be placed where the mesh errs most)."""
+    """{family: rss of the discretisation residual `d` that the family's linearised columns,
+    together with the stiffness offset column `j_offset`, absorb, times `scale`}. J: {family:
+    (N, k) sensitivities over all train rows}; rows: the rows of `d`'s recording(s).
+
+    d is what the (nonlinear, short) offset fit left. The part of it the offset column still
+    absorbs linearly is residual the linearisation cannot attribute (a frequency mismatch at
+    large amplitude that any family, the stiffness scale included, may take or not): it is
+    credited to every family alike, so it makes fits ties rather than deciding them; what a
+    family absorbs beyond it is its own credit (a uniform stiffness scale has none of its own).
+    region: (J_patches, locate) to re-locate a region on `d` for "heterogeneity" (a located
+    region may be placed where the mesh errs most)."""
     d = np.asarray(d, float)
     base = float(d @ d)
-    if j_offset is not None:
-        base = fitting.linear_fit(np.asarray(j_offset, float)[rows, None], d)[1]
     out = {}
     for name, Jn in J.items():
         A = np.asarray(Jn, float)[rows]
