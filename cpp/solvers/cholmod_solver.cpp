@@ -139,4 +139,25 @@ VecX CholmodSolver::solve(const VecX& b) const {
   return out;
 }
 
+MatX CholmodSolver::solve_many(const MatX& B) const {
+  if (!factorized_) throw std::logic_error("CholmodSolver: solve() called before factorize()");
+  if (B.rows() != n_) throw InvalidInput("CholmodSolver: right-hand side has wrong size");
+  if (B.cols() == 0) return MatX(n_, 0);
+  auto* c = reinterpret_cast<cholmod_common*>(common_);
+  auto* L = reinterpret_cast<cholmod_factor*>(factor_);
+  cholmod_dense bd{};
+  bd.nrow = n_;
+  bd.ncol = B.cols();
+  bd.nzmax = B.size();
+  bd.d = n_;
+  bd.x = const_cast<double*>(B.data());
+  bd.xtype = CHOLMOD_REAL;
+  bd.dtype = CHOLMOD_DOUBLE;
+  cholmod_dense* x = cholmod_solve(CHOLMOD_A, L, &bd, c);
+  if (!x) throw NumericalError("CHOLMOD solve failed");
+  MatX out = Eigen::Map<MatX>(static_cast<double*>(x->x), n_, B.cols());
+  cholmod_free_dense(&x, c);
+  return out;
+}
+
 }  // namespace matlearn::solvers

@@ -24,6 +24,8 @@ class CholmodSolver {
   /// Throws NumericalError if A is not positive definite.
   void factorize(const SpMat& A_upper);
   VecX solve(const VecX& b) const;
+  /// Several right-hand sides (columns of B) with one pass over the factor.
+  MatX solve_many(const MatX& B) const;
   bool analyzed() const { return factor_ != nullptr; }
   bool factorized() const { return factorized_; }
 

@@ -15,6 +15,8 @@
 
 namespace matlearn::time {
 
+using MatX4 = Eigen::Matrix<double, Eigen::Dynamic, 4, Eigen::RowMajor>;
+
 struct ReplayStats {
   long steps = 0;
   long factorizations = 0;
@@ -33,6 +35,21 @@ class LinearisedReplay {
   /// positions ((steps+1) * #V, 3), the initial state first; velocities likewise if requested.
   MatX3 simulate(const fem::Model& model, const MatX3& x0, const MatX3& v0, int steps,
                  const MatX3& f_ext, MatX3* velocities = nullptr);
+
+  /// Forward-mode sensitivities of simulate() with respect to per-element log-stiffness changes
+  /// (E_e -> E_e exp(theta_e): mu, lambda and the stiffness-damping force of the element scale
+  /// together), for the k directions in the columns of `directions` (#T x k) at once: every
+  /// step is factorised once and the k tangent systems share the factor. Output points are
+  /// barycentric combinations of 4 vertices (`point_vertices`, `point_weights`, P x 4), e.g.
+  /// markers; `dx0` (3#V x k) is the derivative of the initial positions (that of the initial
+  /// velocities is zero). The step is differentiated with its matrix's dependence on the state
+  /// dropped (kept: its dependence on theta), i.e. the Newton-consistent linearisation with the
+  /// projected tangent; it matches finite differences of simulate() to O(h) in relative terms.
+  /// Needs a model without correction and stretch edits (stress linear in mu and lambda).
+  /// Writes `out` ((steps+1) x P x 3 x k, C order); returns the positions like simulate().
+  MatX3 tangent(const fem::Model& model, const MatX3& x0, const MatX3& v0, int steps,
+                const MatX3& f_ext, const MatX& dx0, const MatX& directions,
+                const MatX4i& point_vertices, const MatX4& point_weights, double* out);
 
   const ReplayStats& stats() const { return stats_; }
 

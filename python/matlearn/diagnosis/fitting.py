@@ -261,70 +261,24 @@ def make_patches(mesh, count: int, seed: int = 0) -> np.ndarray:
     return km.labels_
 
 
-def refine_region(problem, ctx, fit: Fit, target_size: int = 8, rounds: int = 2, progress=None):
-    """Move the located region's boundary at the element level (coarse-to-fine localisation).
+def refine_region(problem, ctx, fit: Fit, target_size: int = 6, rounds: int = 4, progress=None):
+    """Move the located region's boundary at the element level (coarse-to-fine localisation):
+    boundary groups' moves predicted by stiffness tangents (one pass per round for all groups,
+    region.boundary_moves), combined greedily, and accepted only when the two scales refit by
+    simulation lower the simulated residual. A fit without stiffness contrast is first
+    restarted from the tangent step of its two scales (region.restart_scales). Modifies
+    ctx.region; returns the (possibly) improved fit."""
+    from .region import boundary_moves, restart_scales
 
-    The patches are coarse; their boundary is refined here around the fitted heterogeneity:
-    the elements on either side of the region boundary (sharing a vertex with the other side)
-    are grouped into small spatial groups (k-means, ~target_size elements), the exact effect
-    on the residual of moving each group to the other side is simulated (one simulation each,
-    at the fitted scales), the moves are combined greedily while the predicted residual drops,
-    and the two scales are refit by simulation for the new region; kept only if the simulated
-    residual is lower. Modifies ctx.region; returns the (possibly) improved fit."""
-    from sklearn.cluster import KMeans
+    def refit(params):
+        return refine(problem, ctx, list(params), params, iterations=2)
 
-    T = np.asarray(ctx.mesh.tets)
-    C = np.asarray(ctx.mesh.vertices)[T].mean(axis=1)
-    nv = ctx.mesh.num_vertices
-    for rnd in range(rounds):
-        region = ctx.region.copy()
-        r_h = residual_of(problem, ctx, fit.params)
-        groups = []
-        for side in (region, ~region):
-            other = np.zeros(nv, bool)
-            other[T[~side].ravel()] = True
-            idx = np.flatnonzero(side & other[T].any(axis=1))
-            if len(idx) == 0:
-                continue
-            k = int(max(1, min(len(idx), round(len(idx) / target_size))))
-            lab = KMeans(k, n_init=2, random_state=rnd).fit(C[idx]).labels_ if k > 1 else np.zeros(len(idx), int)
-            groups += [idx[lab == j] for j in range(k)]
-        D = []
-        for g in groups:
-            ctx.region = region.copy()
-            ctx.region[g] = ~ctx.region[g]
-            D.append(residual_of(problem, ctx, fit.params) - r_h)
-        ctx.region = region
-        cur, chosen = r_h.copy(), []
-        while True:
-            trial = [(float((cur + D[i]) @ (cur + D[i])), i) for i in range(len(D)) if i not in chosen]
-            if not trial:
-                break
-            c, i = min(trial)
-            if c >= float(cur @ cur):
-                break
-            cur = cur + D[i]
-            chosen.append(i)
-        if not chosen:
-            if progress:
-                progress(f"region boundary round {rnd + 1}: no move of {len(groups)} groups lowers the residual")
-            break
-        new = region.copy()
-        for i in chosen:
-            new[groups[i]] = ~new[groups[i]]
-        if new.all() or not new.any():
-            break
-        ctx.region = new
-        cand = refine(problem, ctx, list(fit.params), fit.params, iterations=2)
-        if progress:
-            progress(f"region boundary round {rnd + 1}: {len(chosen)} of {len(groups)} groups moved, "
-                     f"rss {fit.rss:.3e} -> {cand.rss:.3e}")
-        if cand.rss < fit.rss:
-            fit = Fit(fit.name, cand.params, cand.rss, fit.dof, fit.evaluations + cand.evaluations, fit.history)
-        else:
-            ctx.region = region
-            break
-    return fit
+    t = np.asarray(fit.params.get("heterogeneity", [0.0, 0.0]), float)
+    if ctx.region is not None and ctx.region.any() and abs(t[0] - (t[1] if len(t) > 1 else 0.0)) < 1e-3:
+        fit = restart_scales(problem, ctx, fit, refit, progress=progress)
+
+    return boundary_moves(problem, ctx, fit, refit, target_size=target_size, rounds=rounds,
+                          progress=progress)
 
 
 def loo_rss_region(problem, ctx, params: dict, J_patches, r0, labels):

@@ -92,6 +92,15 @@ class Problem:
     def _linearised(self, model, rec, state):
         """(sim_t, X, V) of replay.simulate_recording(max_newton=1), through the scene's
         LinearisedReplay (created on first use, its factor kept between calls)."""
+        scene = self.scene
+        runner = self.replay_runner(model)
+        sim_t = replay.simulation_times(scene, rec)
+        n = scene.mesh.num_vertices
+        X, V = runner.simulate(model, state[0], state[1], len(sim_t) - 1, np.zeros((n, 3)))
+        return sim_t, X, V
+
+    def replay_runner(self, model):
+        """The scene's LinearisedReplay (created on first use with `model`'s mesh, kept)."""
         from .. import _core
 
         scene = self.scene
@@ -99,11 +108,7 @@ class Problem:
         if key not in self._replays:
             self._replays[key] = (scene, _core.time.LinearisedReplay(
                 model, scene.fixed, scene.time_step, np.asarray(scene.gravity, float)))
-        runner = self._replays[key][1]
-        sim_t = replay.simulation_times(scene, rec)
-        n = scene.mesh.num_vertices
-        X, V = runner.simulate(model, state[0], state[1], len(sim_t) - 1, np.zeros((n, 3)))
-        return sim_t, X, V
+        return self._replays[key][1]
 
     def residual(self, model, recs=None, fast: bool = True) -> np.ndarray:
         """Stacked (prediction - observation) over seen markers of `recs` (default train), in
