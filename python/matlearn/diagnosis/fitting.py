@@ -261,11 +261,13 @@ def make_patches(mesh, count: int, seed: int = 0) -> np.ndarray:
     return km.labels_
 
 
-def refine_region(problem, ctx, fit: Fit, target_size: int = 6, rounds: int = 4, progress=None):
+def refine_region(problem, ctx, fit: Fit, target_size: int = 6, rounds: int = 4, progress=None,
+                  floor=None):
     """Move the located region's boundary at the element level (coarse-to-fine localisation):
     boundary groups' moves predicted by stiffness tangents (one pass per round for all groups,
     region.boundary_moves), combined greedily, and accepted only when the two scales refit by
-    simulation lower the simulated residual. A fit without stiffness contrast is first
+    simulation lower the simulated residual; no moves once the fit is within `floor` (noise +
+    discretisation: moves would fit those). A fit without stiffness contrast is first
     restarted from the tangent step of its two scales (region.restart_scales). Modifies
     ctx.region; returns the (possibly) improved fit."""
     from .region import boundary_moves, restart_scales
@@ -278,7 +280,7 @@ def refine_region(problem, ctx, fit: Fit, target_size: int = 6, rounds: int = 4,
         fit = restart_scales(problem, ctx, fit, refit, progress=progress)
 
     return boundary_moves(problem, ctx, fit, refit, target_size=target_size, rounds=rounds,
-                          progress=progress)
+                          progress=progress, floor=floor)
 
 
 def loo_rss_region(problem, ctx, params: dict, J_patches, r0, labels):

@@ -180,7 +180,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             if alt.rss < fits[name].rss:
                 fits[name] = alt
         if name == "heterogeneity":  # coarse patches -> element-level region boundary
-            fits[name] = fitting.refine_region(P, ctx, fits[name], progress=say)
+            fits[name] = fitting.refine_region(P, ctx, fits[name], progress=say, floor=rss_floor)
     if "stiffness_scale" in fits:
         f = fits["stiffness_scale"]
         fits["density"] = fitting.Fit("density", {"density": -f.params["stiffness_scale"]}, f.rss,

@@ -91,14 +91,21 @@ def greedy_moves(r, D) -> list:
 
 
 def boundary_moves(problem, ctx, fit, refine_fn, target_size: int = 6, rounds: int = 4,
-                   progress=None):
+                   progress=None, floor=None):
     """Refine ctx.region (bool per element) at the element level around the fitted
     heterogeneity `fit` (fitting.Fit with params["heterogeneity"] = [log region, log rest]).
     refine_fn(region_params) -> Fit refits the scales by simulation for ctx.region as set.
+    floor: the residual that noise and discretisation explain; once the fit is within it,
+    further moves would only shape the region to them (rounds stop).
     Modifies ctx.region; returns the (possibly) improved fit."""
     from .fitting import Fit
 
     for rnd in range(rounds):
+        if floor is not None and fit.rss <= floor:
+            if progress:
+                progress(f"region boundary: fit rss {fit.rss:.3e} within the floor {floor:.3e}, "
+                         "boundary kept")
+            break
         t = np.asarray(fit.params["heterogeneity"], float)
         contrast = float(t[0] - (t[1] if len(t) > 1 else 0.0))
         if abs(contrast) < 1e-3:
