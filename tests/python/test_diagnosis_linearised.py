@@ -124,3 +124,22 @@ def test_greedy_moves_take_only_helpful_columns():
     for i in chosen:
         assert np.linalg.norm(cur + D[:, i]) < np.linalg.norm(cur)
         cur = cur + D[:, i]
+
+
+def test_tangent_refuses_models_it_cannot_differentiate(setup):
+    from matlearn.diagnosis.effects import build_model as bm
+
+    P, ctx, D, params = setup
+    s = P.scene
+    n = s.mesh.num_vertices
+    # a correction's stress does not scale with the element stiffness
+    model = bm(ctx, {"tension_nonlinearity": [1.0, 0.0]})
+    R = P.replay_runner(model)
+    V = np.asarray(s.mesh.vertices, float)
+    emb = P.embedding(P.train[0])
+    with pytest.raises(ValueError, match="correction"):
+        R.tangent(model, V, 0 * V, 3, np.zeros((n, 3)), np.zeros((3 * n, 1)), D[:, :1],
+                  np.asarray(emb.vertices, np.int64), emb.bary)
+    with pytest.raises(ValueError, match="directions"):
+        R.tangent(build_model(ctx, {}), V, 0 * V, 3, np.zeros((n, 3)), np.zeros((3 * n, 1)),
+                  D[:5, :1], np.asarray(emb.vertices, np.int64), emb.bary)
