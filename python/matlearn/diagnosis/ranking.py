@@ -75,10 +75,22 @@ def discretisation_credit(J: dict, d: np.ndarray, rows: slice, scale: float, j_o
     return out
 
 
+# The credit is measured against a once-refined *nested* mesh and scaled to the continuum like the
+# floor; the recordings' truth (a real object, or a finer mesh that is not nested in the model's)
+# errs in another spatial pattern, so the credit is uncertain by the same factor as the floor
+# (pipeline.GAP_FACTOR, ~1.6x in RMS). A gain counts as evidence only beyond that uncertainty.
+# Measured on the demo's case (homogeneously 40 % stiffer, truth on a 1.5x finer non-nested
+# mesh): a clamp-side region gains 1.1x its credit over the uniform scale; located true regions
+# in the suites gain 5-9x theirs.
+CREDIT_FACTOR = 2.5
+
+
 def beats(a: dict, b: dict, credit: dict, tol: dict) -> bool:
-    """a's fit is better than b's by more than discretisation mimicry and noise can explain."""
+    """a's fit is better than b's by more than discretisation mimicry (its credit, times its
+    uncertainty CREDIT_FACTOR) and noise can explain."""
     gain = b["rss"] - a["rss"]
-    return bool(gain > credit.get(a["name"], 0.0) + tol.get(a["name"], 0.0) and a["score"] < b["score"])
+    return bool(gain > CREDIT_FACTOR * credit.get(a["name"], 0.0) + tol.get(a["name"], 0.0)
+                and a["score"] < b["score"])
 
 
 def order(rows: list, credit: dict, tol: dict, forced: dict | None = None, grain: float = 0.0) -> list:
