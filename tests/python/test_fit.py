@@ -304,3 +304,28 @@ def test_tangent_penalty_keeps_the_fit_well_conditioned_on_noisy_forces():
     assert rbf_tangent(raw) > 0.3
     assert rbf_tangent(smooth) < 0.15 * rbf_tangent(raw)
     assert far_error(smooth) < 0.5 * far_error(raw), (far_error(smooth), far_error(raw))
+
+
+def test_tangent_margin_flags_a_correction_that_softens_into_instability_beyond_the_data():
+    from matlearn.learning.fit import tangent_margin
+
+    mat = Material("corotated", 3e5, 0.3, 1000.0)
+    nominal = _scene(mat).model()
+    mu, lam = float(nominal.mu[0]), float(nominal.lam[0])
+    M = 2 * mu + lam
+    C = 1 + 0.01 * np.array([[1.0, 0, -1], [0, 1, 0], [-1, 0, 1]])
+    zero = RbfParams(C, np.zeros((3, 3)), epsilon=0.01)
+    rng = np.random.default_rng(0)
+    probes = 1 + 0.1 * rng.standard_normal((200, 3))  # mostly outside the box of C
+    # The co-rotated tangent at small strain is 2 mu I + lam 11^T: smallest eigenvalue 2 mu.
+    assert tangent_margin(zero, mat, mu, lam, probes) == pytest.approx(2 * mu / M, rel=0.2)
+    # A correction whose linear part removes more than 2 mu from the tangent in one direction
+    # is unstable there; one that removes less is not.
+    for f, sign in ((1.5, -1), (0.5, 1)):
+        A = -f * 2 * mu * np.diag([1.0, 0.0, 0.0])
+        m = tangent_margin(RbfParams(C, np.zeros((3, 3)), A, epsilon=0.01), mat, mu, lam, probes)
+        assert np.sign(m) == sign, (f, m)
+    # Inside the data (the centres' box) the data decide: no probe there, no verdict.
+    inside = 1 + 0.001 * rng.standard_normal((50, 3))
+    assert tangent_margin(RbfParams(C, np.zeros((3, 3)), -10 * M * np.eye(3), epsilon=0.01),
+                          mat, mu, lam, inside) == np.inf

@@ -113,6 +113,8 @@ def test_ridge_search(case, tmp_path, monkeypatch, search, expect_fits, expect_r
         return RbfParams(np.ones((1, 3)), np.full((1, 3), ridge)), {"residual_ratio": 0.0}
 
     monkeypatch.setattr(loop_mod, "fit_correction", fake_fit)
+    monkeypatch.setattr(loop_mod, "extension_probes", lambda *a, **kw: None)
+    monkeypatch.setattr(loop_mod, "tangent_margin", lambda *a, **kw: 1.0)
     lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
                           LearnOptions(ridges=(1e-6, 1e-4, 1e-2), smoothing=(0.1,), ridge_search=search,
                                        **{"modes": 4}), log=None)

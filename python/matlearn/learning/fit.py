@@ -258,3 +258,37 @@ def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_m
     info = {"residual_ratio": float(np.sqrt(res2 / yy)) if yy > 0 else 0.0, "frames": count,
             "parameters": p, "centers": c, "epsilon": eps, "smooth": smooth}
     return params, info
+
+
+def extension_probes(nominal_model, frames: list, factor: float = 2.0, max_samples: int = 4000,
+                     seed: int = 0) -> np.ndarray:
+    """Stretches (k, 3) of a motion `factor` times larger than the fitted one: 1 + factor (s - 1)
+    for (at most max_samples of) the principal stretches s of the fit frames. Where they leave
+    the centres' box the correction is extrapolated, and :func:`tangent_margin` checks it there."""
+    S = np.concatenate([np.asarray(_core.fit.principal_stretches(nominal_model, np.asarray(fr.X)))
+                        for fr in frames])
+    if len(S) > max_samples:
+        S = S[np.random.default_rng(seed).choice(len(S), max_samples, replace=False)]
+    return 1.0 + factor * (S - 1.0)
+
+
+def tangent_margin(params: RbfParams, material, mu: float, lam: float, probes: np.ndarray) -> float:
+    """Smallest eigenvalue of the symmetric part of the total principal tangent (nominal law +
+    correction) over the probe stretches that lie outside the centres' box, divided by the
+    nominal P-wave modulus 2 mu + lam (+inf when no probe lies outside). Negative: beyond the
+    data the corrected material softens into instability (a held-out motion larger than the
+    training one would blow up), so the loop rejects such an update. Inside the box the data
+    decide (an edited truth may itself soften there)."""
+    lo, hi = params.box()
+    S = np.asarray(probes, float)
+    if lo is not None:
+        S = S[np.any((S < lo) | (S > hi), axis=1)]
+    if len(S) == 0:
+        return float("inf")
+    T = np.asarray(_core.fem.principal_stress_derivative(
+        material.model, S, np.full(len(S), mu), np.full(len(S), lam),
+        [tuple(map(float, e)) for e in material.edits]))
+    J = np.asarray(params.correction().evaluate(S, np.zeros_like(S))[1])
+    T = T + J
+    ev = np.linalg.eigvalsh(0.5 * (T + np.transpose(T, (0, 2, 1))))
+    return float(ev.min() / (2 * mu + lam))
