@@ -43,7 +43,8 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int) -> dict:
     opts = LearnOptions(iterations=iterations, **spec.learn)
     res = learn(scene, work / "runs" / spec.name, opts, log=lambda *a: print("   ", *a, flush=True))
     wall = time.time() - t0
-    learned = res["final"]["test"]["per_recording_max_pct"]  # scored inside the loop
+    final_test = res["final"]["test"]  # scored inside the loop; None: a test recording diverged
+    learned = final_test["per_recording_max_pct"] if final_test else [float("nan")] * len(test_recs)
     tb = time.time()
     fit = fit_parameters(scene, "corotated", max_evaluations=baseline_evals)
     try:
