@@ -28,7 +28,18 @@ def run_timing(work: Path, results: Path, fresh: bool = False) -> int:
     path, region = build_case(work, "timing_3k", SPEC, seed=5, reuse=not fresh)
     build = time.time() - t0
     t0 = time.time()
-    result = diagnose(path, work / "timing_3k" / "diagnosis", seed=0, report=True)
+    load_start = os.getloadavg()[0]
+    milestones = {}
+
+    def progress(line):  # "[diagnose   12.3s] where: ..." -> stage milestones (s)
+        print(line, file=sys.stderr, flush=True)
+        stage = line.split("] ", 1)[-1].split(":")[0].split(" (")[0]
+        for key in ("where", "discretisation", "sensitivities done", "region boundary",
+                    "verdict", "wrote"):
+            if stage.startswith(key):
+                milestones[key] = round(time.time() - t0, 1)
+
+    result = diagnose(path, work / "timing_3k" / "diagnosis", seed=0, report=True, progress=progress)
     wall = time.time() - t0
     row = score_case("timing_3k", SPEC, result, region, wall)
     from matlearn.scene import load_scene
@@ -38,7 +49,8 @@ def run_timing(work: Path, results: Path, fresh: bool = False) -> int:
             "steps_per_recording": int(round(SPEC["duration"] / scene.time_step)),
             "simulations": result["simulations"], "verdict": result["verdict"],
             "build_truth_s": build, "load_avg_1min": os.getloadavg()[0],
-            "commit": _commit()}
+            "load_avg_1min_at_start": load_start, "cores": os.cpu_count(),
+            "milestones_s": milestones, "commit": _commit()}
     print(json.dumps({**row, **info}, indent=1))
     out = json.loads(results.read_text()) if results.exists() else {"cases": [], "totals": {}}
     out.setdefault("totals", {})["timing_3k"] = wall
