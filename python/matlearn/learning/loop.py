@@ -85,7 +85,9 @@ class LearnOptions:
     the basis; fit_frames: max frames per recording in the fit; smoothing: weights of the
     fit's tangent penalty (fit.py: the RBF part's tangent relative to the nominal modulus)
     and ridges: relative numerical Tikhonov weights; every (smoothing, ridge) pair is a
-    candidate per iteration (the best train error wins); ridge_search: "all" (fit and
+    candidate per iteration (the best train error wins; when none is stable and simulable, up
+    to `escalate` more with 10x, 100x the largest smoothing weight are tried before the update
+    is shortened); ridge_search: "all" (fit and
     forward-simulate every candidate) or "first" (in the given order, stop at the first
     whose train error is lower than the current one: one fit + one forward simulation per
     iteration instead of one per candidate, for large cases, bench/learning_scale.py); patience: iterations without
@@ -108,6 +110,7 @@ class LearnOptions:
     backtrack: tuple = (0.5, 0.25)
     track: TrackOptions | None = None
     smoothing: tuple = (1e-3, 1e-2, 1e-1, 1.0)
+    escalate: int = 2
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
@@ -418,7 +421,9 @@ class Learner:
                 return np.inf, None, None, margin
             return (*self._train_error(q), margin)
 
-        for ridge, smooth in [(r, s) for s in opt.smoothing for r in opt.ridges]:
+        pairs = [(r, s) for s in opt.smoothing for r in opt.ridges]
+        while pairs:
+            ridge, smooth = pairs.pop(0)
             p, info = fit_correction(self.nominal, frames, opt.centers,
                                      current_model=current_model if params is not None else None,
                                      damping=opt.damping, ridge=ridge, seed=opt.seed + k, centers=centers,
@@ -430,6 +435,10 @@ class Learner:
             cands.append((err, -info["tangent_margin"], len(cands), p, info, errs, sims))
             if opt.ridge_search == "first" and err < current_err:
                 break
+            escalated = len(cands) - len(opt.smoothing) * len(opt.ridges)
+            if not pairs and escalated < opt.escalate and not any(np.isfinite(c[0]) for c in cands):
+                # No candidate is stable (or simulable): smooth harder (x10) before shortening.
+                pairs = [(opt.ridges[0], 10.0 * max(c[4]["smooth"] for c in cands))]
         # Lowest train error; among unsimulable candidates the most stable one (to be shortened).
         cands_best = min(cands, key=lambda c: (c[0], c[1], c[2]))
         err, _, _, p, info, errs, sims = cands_best
