@@ -124,3 +124,28 @@ def test_ridge_search(case, tmp_path, monkeypatch, search, expect_fits, expect_r
     assert fits == [1e-6, 1e-4, 1e-2][:expect_fits]
     assert info["ridge"] == expect_ridge and float(p.weights[0, 0]) == expect_ridge
     assert info["update_step"] == 1.0
+
+
+def test_unstable_candidates_escalate_the_smoothing_before_shortening(case, tmp_path, monkeypatch):
+    """No candidate stable beyond the data: 10x and 100x the largest smoothing weight are
+    fitted next, and the first stable one that lowers the train error is taken unshortened."""
+    from matlearn.learning.fit import RbfParams
+
+    fits = []
+
+    def fake_fit(nominal, frames, num_centers, ridge, smooth=0.0, **kw):
+        fits.append(smooth)
+        return RbfParams(np.ones((1, 3)), np.full((1, 3), smooth)), {"residual_ratio": 0.0}
+
+    monkeypatch.setattr(loop_mod, "fit_correction", fake_fit)
+    monkeypatch.setattr(loop_mod, "extension_probes", lambda *a, **kw: None)
+    # Stable beyond the data only from smoothing 100 on (the blends of an unstable fit stay unstable).
+    monkeypatch.setattr(loop_mod, "tangent_margin", lambda p, *a, **kw: float(p.weights[0, 0]) - 50.0)
+    lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
+                          LearnOptions(smoothing=(0.1, 1.0), modes=4), log=None)
+    simulated = []
+    monkeypatch.setattr(lr, "_train_error", lambda p: (simulated.append(p) or 0.5, [], []))
+    p, info, _ = lr._update(None, None, None, 1.0, 0)
+    assert fits == [0.1, 1.0, 10.0, 100.0]
+    assert info["smooth"] == 100.0 and info["update_step"] == 1.0 and len(simulated) == 1
+    assert [c["tangent_margin"] for c in info["ridge_candidates"]] == [-49.9, -49.0, -40.0, 50.0]
