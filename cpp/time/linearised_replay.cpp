@@ -125,22 +125,26 @@ MatX3 LinearisedReplay::simulate(const fem::Model& model, const MatX3& x0_in, co
       os << "step " << s << ": linear solve produced NaN (diverged)";
       throw NumericalError(os.str());
     }
-    auto vdm = as_dofs(v);
-    for (int d = 0; d < 3 * nv_; ++d)
-      if (dof_map_[d] >= 0) vdm[d] += dv[dof_map_[d]];
-    if (!v.allFinite() || v.cwiseAbs().maxCoeff() * h_ > 1e4 * size_) {
-      std::ostringstream os;
-      os << "step " << s << ": simulation diverged (velocities blew up; "
-         << "try a smaller time step or check the material parameters)";
-      throw NumericalError(os.str());
-    }
-    vs = v;
-    xs = xs + h_ * v;
+    advance(dv, s, v, vs, xs);
     ++stats_.steps;
     out.middleRows((s + 1) * nv_, nv_) = xs;
     if (velocities) velocities->middleRows((s + 1) * nv_, nv_) = vs;
   }
   return out;
+}
+
+void LinearisedReplay::advance(const VecX& dv, int s, MatX3& v, MatX3& vs, MatX3& xs) {
+  auto vdm = as_dofs(v);
+  for (int d = 0; d < 3 * nv_; ++d)
+    if (dof_map_[d] >= 0) vdm[d] += dv[dof_map_[d]];
+  if (!v.allFinite() || v.cwiseAbs().maxCoeff() * h_ > 1e4 * size_) {
+    std::ostringstream os;
+    os << "step " << s << ": simulation diverged (velocities blew up; "
+       << "try a smaller time step or check the material parameters)";
+    throw NumericalError(os.str());
+  }
+  vs = v;
+  xs = xs + h_ * v;
 }
 
 }  // namespace matlearn::time

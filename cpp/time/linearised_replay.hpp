@@ -55,6 +55,9 @@ class LinearisedReplay {
 
  private:
   VecX solve(const VecX& b, int step);
+  /// Adds the free-DOF velocity update dv to v, checks it for divergence (step s), and
+  /// advances the state: vs = v, xs += h v.
+  void advance(const VecX& dv, int s, MatX3& v, MatX3& vs, MatX3& xs);
   VecXi fixed_, dof_map_;
   int nv_, nt_, n_free_ = 0;
   double h_, tol_;
