@@ -55,6 +55,13 @@ def test_confounded_with_is_symmetric_and_excludes_clear_winners():
     assert got["support_compliance"] == set()  # explains less than half: not an explanation
     out = ranking.order(rows, credit, tol)
     assert [r["name"] for r in out][:2] == ["stiffness_scale", "density"]
+    # noise-dominated residual: equal fits that explain most of what is above the noise are
+    # still confounded (noise cannot be explained by anything)
+    rows = [_row("stiffness_scale", 0.75), _row("density", 0.75)]
+    ranking.confounded(rows, {}, {}, rss0=1.0)
+    assert rows[0]["confounded_with"] == []
+    ranking.confounded(rows, {}, {}, rss0=1.0, rss_noise=0.7)
+    assert rows[0]["confounded_with"] == ["density"]
 
 
 def test_forced_nested_decision_overrides_the_residual():

@@ -185,7 +185,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         f = fits["stiffness_scale"]
         fits["density"] = fitting.Fit("density", {"density": -f.params["stiffness_scale"]}, f.rss,
                                       f.dof, 0, f.history)
-    ranked = _rank(fits, cheap, order, n_eff, rss_floor, rss0, credit, tol)
+    ranked = _rank(fits, cheap, order, n_eff, rss_floor, rss0, credit, tol, rss_noise)
 
     # ---- verdict
     # above: beyond the floor (which already assumes the truth is the continuum); clear: beyond
@@ -211,7 +211,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
 
     if above:
         best, forced = _resolve_nested(ranked, cv_of, credit, tol, say)
-        ranking.confounded(ranked, credit, tol, rss0, forced)
+        ranking.confounded(ranked, credit, tol, rss0, forced, rss_noise)
         _add_nested_ties(ranked, forced)
         ranked[:] = ranking.order(ranked, credit, tol, forced, grain=0.05 * rss_floor)
         if best is not ranked[0] and best["name"] in ranked[0]["confounded_with"] + [ranked[0]["name"]]:
@@ -335,7 +335,7 @@ def _explained_excess(rss, rss0, floor):
     return float((rss0 - rss) / max(rss0 - floor, 1e-300))
 
 
-def _rank(fits, cheap, order, n_eff, floor, rss0, credit, tol):
+def _rank(fits, cheap, order, n_eff, floor, rss0, credit, tol, rss_noise=0.0):
     """Rows {name, _fit, rss, score, explained, confounded_with} in evidence order (ranking.py):
     a fit leads another only when its residual is lower by more than its discretisation credit
     and the noise; fits that cannot be told apart are confounded, and the prior order leads
@@ -347,7 +347,7 @@ def _rank(fits, cheap, order, n_eff, floor, rss0, credit, tol):
         rows.append({"name": name, "_fit": fit, "rss": rss,
                      "score": fitting.score(rss, _dof(name), n_eff, floor),
                      "explained": float(np.clip((rss0 - rss) / max(rss0, 1e-300), 0, 1))})
-    ranking.confounded(rows, credit, tol, rss0)
+    ranking.confounded(rows, credit, tol, rss0, rss_noise=rss_noise)
     return ranking.order(rows, credit, tol, grain=0.05 * floor)
 
 

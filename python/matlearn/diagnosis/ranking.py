@@ -123,10 +123,12 @@ def order(rows: list, credit: dict, tol: dict, forced: dict | None = None, grain
     return out + rest
 
 
-def confounded(rows: list, credit: dict, tol: dict, rss0: float, forced: dict | None = None) -> None:
+def confounded(rows: list, credit: dict, tol: dict, rss0: float, forced: dict | None = None,
+               rss_noise: float = 0.0) -> None:
     """row["confounded_with"]: the simulated fits that explain the data as well as this one
-    (neither beats the other; both explain something and leave less than half the baseline
-    residual, so the tie is between explanations, not between two failures)."""
+    (neither beats the other; both explain something and leave less than half of the baseline
+    residual above the marker noise, which no fit can explain, so the tie is between
+    explanations, not between two failures)."""
     forced = forced or {}
     sim = [r for r in rows if r["_fit"] is not None]
     for r in rows:
@@ -135,6 +137,7 @@ def confounded(rows: list, credit: dict, tol: dict, rss0: float, forced: dict | 
         for b in sim:
             if a is b or forced.get(a["name"]) == b["name"] or forced.get(b["name"]) == a["name"]:
                 continue
-            explains = min(rss0 - a["rss"], rss0 - b["rss"]) > 0 and max(a["rss"], b["rss"]) < 0.5 * rss0
+            half = rss_noise + 0.5 * max(rss0 - rss_noise, 0.0)
+            explains = min(rss0 - a["rss"], rss0 - b["rss"]) > 0 and max(a["rss"], b["rss"]) < half
             if explains and not beats(a, b, credit, tol) and not beats(b, a, credit, tol):
                 a["confounded_with"].append(b["name"])
