@@ -292,3 +292,20 @@ def tangent_margin(params: RbfParams, material, mu: float, lam: float, probes: n
     T = T + J
     ev = np.linalg.eigvalsh(0.5 * (T + np.transpose(T, (0, 2, 1))))
     return float(ev.min() / (2 * mu + lam))
+
+
+def project_linear_part(params: RbfParams, material, mu: float, lam: float) -> RbfParams:
+    """A copy whose linear part A is changed minimally (Frobenius norm) so that the symmetric
+    part of the total principal tangent at rest, T_nominal(1) + A, is positive semi-definite:
+    its negative eigenvalues are raised to ~zero (the PSD projection the core applies to dP/dF,
+    applied to the learned global modulus change)."""
+    T0 = np.asarray(_core.fem.principal_stress_derivative(
+        material.model, np.ones((1, 3)), np.array([mu]), np.array([lam]),
+        [tuple(map(float, e)) for e in material.edits]))[0]
+    A = np.asarray(params.linear, float)
+    S = 0.5 * (T0 + A + (T0 + A).T)
+    w, V = np.linalg.eigh(S)
+    from dataclasses import replace
+
+    floor = 1e-6 * (2 * mu + lam)  # strictly positive after round-off
+    return replace(params, linear=A + (V * np.maximum(floor - w, 0.0)) @ V.T)

@@ -49,7 +49,8 @@ from ..clouds.tracking import TrackOptions
 from ..embedding import embed_points
 from ..recording import load_recording
 from ..replay import initial_state, interpolate_frames, simulate_recording
-from .fit import FitFrames, RbfParams, extension_probes, fit_correction, tangent_margin
+from .fit import (FitFrames, RbfParams, extension_probes, fit_correction, project_linear_part,
+                  tangent_margin)
 from .initial import initial_trajectory
 from .pod import pod_basis
 from .spacetime import build_problem, constrained_vertices, solve_spacetime
@@ -439,6 +440,16 @@ class Learner:
             if not pairs and escalated < opt.escalate and not any(np.isfinite(c[0]) for c in cands):
                 # No candidate is stable (or simulable): smooth harder (x10) before shortening.
                 pairs = [(opt.ridges[0], 10.0 * max(c[4]["smooth"] for c in cands))]
+        if not any(np.isfinite(c[0]) for c in cands) and opt.ridge_search == "all":
+            # Still none: the global linear part itself destabilises. Project the most stable
+            # candidate's linear part so that the total tangent at rest is positive
+            # semi-definite (fit.project_linear_part) and try that.
+            q0 = min(cands, key=lambda c: (c[1], c[2]))
+            p = project_linear_part(q0[3], self.scene.material, mu, lam)
+            info = dict(q0[4], projected=True)
+            err, errs, sims, info["tangent_margin"] = evaluate(p)
+            info["train_max_error_pct"] = float(err)
+            cands.append((err, -info["tangent_margin"], len(cands), p, info, errs, sims))
         # Lowest train error; among unsimulable candidates the most stable one (to be shortened).
         cands_best = min(cands, key=lambda c: (c[0], c[1], c[2]))
         err, _, _, p, info, errs, sims = cands_best
