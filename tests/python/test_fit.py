@@ -329,3 +329,27 @@ def test_tangent_margin_flags_a_correction_that_softens_into_instability_beyond_
     inside = 1 + 0.001 * rng.standard_normal((50, 3))
     assert tangent_margin(RbfParams(C, np.zeros((3, 3)), -10 * M * np.eye(3), epsilon=0.01),
                           mat, mu, lam, inside) == np.inf
+
+
+def test_projected_linear_part_is_the_nearest_stable_one():
+    from matlearn.learning.fit import project_linear_part, tangent_margin
+
+    mat = Material("corotated", 3e5, 0.3, 1000.0)
+    nominal = _scene(mat).model()
+    mu, lam = float(nominal.mu[0]), float(nominal.lam[0])
+    C = 1 + 0.01 * np.eye(3)
+    probes = 1 + 0.1 * np.random.default_rng(0).standard_normal((200, 3))
+    rng = np.random.default_rng(1)
+    A = -3 * mu * np.diag([1.0, 0.2, 0.0]) + 0.2 * mu * rng.standard_normal((3, 3))
+    p = RbfParams(C, np.zeros((3, 3)), A, epsilon=0.01)
+    q = project_linear_part(p, mat, mu, lam)
+    assert tangent_margin(p, mat, mu, lam, probes) < 0 <= tangent_margin(q, mat, mu, lam, probes)
+    # Only the symmetric part moves, by the negative eigen-part of the total tangent at rest.
+    T0 = 2 * mu * np.eye(3) + lam * np.ones((3, 3))
+    w = np.linalg.eigvalsh(0.5 * (T0 + A + (T0 + A).T))
+    D = q.linear - A
+    np.testing.assert_allclose(D, D.T, atol=1e-9 * mu)
+    assert np.linalg.norm(D) == pytest.approx(np.linalg.norm(np.minimum(w, 0)), rel=1e-3)
+    # A stable linear part is left alone (up to the round-off floor).
+    ok = project_linear_part(RbfParams(C, np.zeros((3, 3)), -0.5 * mu * np.eye(3), epsilon=0.01), mat, mu, lam)
+    np.testing.assert_allclose(ok.linear, -0.5 * mu * np.eye(3), atol=1e-9)
