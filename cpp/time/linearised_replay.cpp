@@ -112,12 +112,7 @@ MatX3 LinearisedReplay::simulate(const fem::Model& model, const MatX3& x0_in, co
       os << "step " << s << ", Newton iteration 0: " << err.what();
       throw NumericalError(os.str());
     }
-    const VecX f = model.gather_forces(st);
-    VecX g(n_free_);
-    const auto vd = as_dofs(v);
-    const auto v0d = as_dofs(vs);
-    for (int d = 0; d < 3 * nv_; ++d)
-      if (dof_map_[d] >= 0) g[dof_map_[d]] = mass[d] * (vd[d] - v0d[d]) - h_ * (f[d] + fconst[d]);
+    const VecX g = step_residual(model, st, v, vs, mass, fconst);
     assemble_step_matrix(model, st, h_, mass, rayleigh_only, *assembler_, coeff_, diag_, A_);
     const VecX dv = solve(-g, s);
     if (!dv.allFinite()) {
@@ -131,6 +126,18 @@ MatX3 LinearisedReplay::simulate(const fem::Model& model, const MatX3& x0_in, co
     if (velocities) velocities->middleRows((s + 1) * nv_, nv_) = vs;
   }
   return out;
+}
+
+VecX LinearisedReplay::step_residual(const fem::Model& model, const fem::ElementState& st,
+                                     const MatX3& v, const MatX3& vs, const VecX& mass,
+                                     const VecX& fconst) const {
+  const VecX f = model.gather_forces(st);
+  VecX g(n_free_);
+  const auto vd = as_dofs(v);
+  const auto v0d = as_dofs(vs);
+  for (int d = 0; d < 3 * nv_; ++d)
+    if (dof_map_[d] >= 0) g[dof_map_[d]] = mass[d] * (vd[d] - v0d[d]) - h_ * (f[d] + fconst[d]);
+  return g;
 }
 
 void LinearisedReplay::advance(const VecX& dv, int s, MatX3& v, MatX3& vs, MatX3& xs) {

@@ -58,6 +58,10 @@ class LinearisedReplay {
   /// Adds the free-DOF velocity update dv to v, checks it for divergence (step s), and
   /// advances the state: vs = v, xs += h v.
   void advance(const VecX& dv, int s, MatX3& v, MatX3& vs, MatX3& xs);
+  /// Backward-Euler residual on the free DOFs at velocity v from vs: M (v - vs) - h (f + fconst),
+  /// f the forces of the evaluated element state `st`.
+  VecX step_residual(const fem::Model& model, const fem::ElementState& st, const MatX3& v,
+                     const MatX3& vs, const VecX& mass, const VecX& fconst) const;
   VecXi fixed_, dof_map_;
   int nv_, nt_, n_free_ = 0;
   double h_, tol_;

@@ -84,12 +84,7 @@ MatX3 LinearisedReplay::tangent(const fem::Model& model, const MatX3& x0_in, con
       os << "step " << s << ", Newton iteration 0: " << err.what();
       throw NumericalError(os.str());
     }
-    const VecX f = model.gather_forces(st);
-    VecX g(n_free_);
-    const auto vd = as_dofs(v);
-    const auto v0d = as_dofs(vs);
-    for (int d = 0; d < 3 * nv_; ++d)
-      if (dof_map_[d] >= 0) g[dof_map_[d]] = mass[d] * (vd[d] - v0d[d]) - h_ * (f[d] + fconst[d]);
+    const VecX g = step_residual(model, st, v, vs, mass, fconst);
     assemble_step_matrix(model, st, h_, mass, true, *assembler_, coeff_, diag_, A_);
     try {
       solver_.factorize(A_);
