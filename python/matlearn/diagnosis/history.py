@@ -28,6 +28,7 @@ import numpy as np
 from .. import replay
 from .effects import build_model
 from .fitting import linear_fit, rest_offset
+from .problem import stack_residuals
 
 
 def _params_for(params, shift, late):
@@ -44,18 +45,14 @@ def _params_for(params, shift, late):
 
 
 def _rec_residual(problem, ctx, params, shift, late, rec):
-    seen = rec.seen
     p1, p2 = _params_for(params, shift, late)
-    try:
+
+    def predict(rec):
         m1 = build_model(ctx, p1)
         m2 = m1 if late[0] == 0 and late[1] == 0 else build_model(ctx, p2)
-        P = _simulate_split(problem, m1, m2, rec) + rest_offset(problem, rec)[None]
-        r = (P - rec.markers)[seen].ravel() / problem.object_size
-        if not np.all(np.isfinite(r)):
-            raise RuntimeError
-    except RuntimeError:
-        r = np.full(3 * int(seen.sum()), 1.0)
-    return r
+        return _simulate_split(problem, m1, m2, rec) + rest_offset(problem, rec)[None]
+
+    return stack_residuals([rec], predict, problem.object_size)
 
 
 def _residual(problem, ctx, params, x, recs, only=None, base=None):

@@ -35,7 +35,6 @@ from .problem import Problem
 GAP_FACTOR = 2.5
 EXPLAINED_MIN = 0.5  # an effect must explain this fraction of the residual above the floor
 ADD_FACTOR = 0.6  # a further effect must cut (rss + floor) to this fraction
-PRIOR = ranking.PRIOR
 # nested families: larger -> (smaller, embedding of the smaller's parameters in the larger's)
 NESTS = {
     "strain_dependent_damping": ("rayleigh_damping", lambda t: [t[0], t[1], 0.0, 0.0]),
@@ -393,9 +392,9 @@ def _resolve_nested(ranked, cv_of, credit, tol, say):
     if by_score and by_cv:
         forced[big["name"]] = small["name"]
         return big, forced
-    forced[small["name"]] = small_wins = big["name"]
+    forced[small["name"]] = big["name"]
     if by_score or by_cv:
-        forced["_ties"] = [(small["name"], small_wins)]
+        forced["_ties"] = [(small["name"], big["name"])]
     return small, forced
 
 
