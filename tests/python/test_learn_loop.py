@@ -33,7 +33,7 @@ def case(tmp_path_factory):
 
 
 def _scaled_fit(factor):
-    real = loop_mod.fit_correction
+    real = loop_mod.solve_fit
 
     def fit(*args, **kw):
         p, info = real(*args, **kw)
@@ -45,7 +45,7 @@ def _scaled_fit(factor):
 
 def test_an_update_that_raises_the_train_error_is_rejected(case, tmp_path, monkeypatch):
     # A fit pointing the wrong way (the negated correction): every step of it is worse.
-    monkeypatch.setattr(loop_mod, "fit_correction", _scaled_fit(-1.0))
+    monkeypatch.setattr(loop_mod, "solve_fit", _scaled_fit(-1.0))
     res = learn(load_scene(case), tmp_path / "run", LearnOptions(iterations=4, patience=1, **OPTS), log=None)
     ms = res["metrics"]
     # Rejected at iteration 0; one more try from the new space-time trajectories (patience 1),
@@ -61,7 +61,7 @@ def test_an_update_that_raises_the_train_error_is_rejected(case, tmp_path, monke
 
 def test_an_overshooting_update_is_shortened_and_errors_never_increase(case, tmp_path, monkeypatch):
     # 4x the fitted correction overshoots; a quarter of it is the plain fit, which helps.
-    monkeypatch.setattr(loop_mod, "fit_correction", _scaled_fit(4.0))
+    monkeypatch.setattr(loop_mod, "solve_fit", _scaled_fit(4.0))
     res = learn(load_scene(case), tmp_path / "run", LearnOptions(iterations=2, **OPTS), log=None)
     m0 = res["metrics"][0]
     assert m0["fit"]["steps_tried"][0]["train_max_error_pct"] > m0["train"]["max_error_pct"]
@@ -108,11 +108,13 @@ def test_ridge_search(case, tmp_path, monkeypatch, search, expect_fits, expect_r
 
     fits = []
 
-    def fake_fit(nominal, frames, num_centers, ridge, **kw):
+    def fake_fit(system, ridge, smooth=0.0):
         fits.append(ridge)
         return RbfParams(np.ones((1, 3)), np.full((1, 3), ridge)), {"residual_ratio": 0.0}
 
-    monkeypatch.setattr(loop_mod, "fit_correction", fake_fit)
+    systems = []  # the normal equations are assembled once for all candidates
+    monkeypatch.setattr(loop_mod, "fit_system", lambda *a, **kw: systems.append(1))
+    monkeypatch.setattr(loop_mod, "solve_fit", fake_fit)
     monkeypatch.setattr(loop_mod, "extension_probes", lambda *a, **kw: None)
     monkeypatch.setattr(loop_mod, "tangent_margin", lambda *a, **kw: 1.0)
     lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
@@ -121,7 +123,7 @@ def test_ridge_search(case, tmp_path, monkeypatch, search, expect_fits, expect_r
     errors = {1e-6: 1.5, 1e-4: 0.9, 1e-2: 0.8}  # current error 1.0: 1e-4 is the first to improve
     monkeypatch.setattr(lr, "_train_error", lambda p: (errors[float(p.weights[0, 0])], [], []))
     p, info, _ = lr._update(None, None, None, 1.0, 0)
-    assert fits == [1e-6, 1e-4, 1e-2][:expect_fits]
+    assert fits == [1e-6, 1e-4, 1e-2][:expect_fits] and len(systems) == 1
     assert info["ridge"] == expect_ridge and float(p.weights[0, 0]) == expect_ridge
     assert info["update_step"] == 1.0
 
@@ -133,11 +135,12 @@ def test_unstable_candidates_escalate_the_smoothing_before_shortening(case, tmp_
 
     fits = []
 
-    def fake_fit(nominal, frames, num_centers, ridge, smooth=0.0, **kw):
+    def fake_fit(system, ridge, smooth=0.0):
         fits.append(smooth)
         return RbfParams(np.ones((1, 3)), np.full((1, 3), smooth)), {"residual_ratio": 0.0}
 
-    monkeypatch.setattr(loop_mod, "fit_correction", fake_fit)
+    monkeypatch.setattr(loop_mod, "fit_system", lambda *a, **kw: None)
+    monkeypatch.setattr(loop_mod, "solve_fit", fake_fit)
     monkeypatch.setattr(loop_mod, "extension_probes", lambda *a, **kw: None)
     # Stable beyond the data only from smoothing 100 on (the blends of an unstable fit stay unstable).
     monkeypatch.setattr(loop_mod, "tangent_margin", lambda p, *a, **kw: float(p.weights[0, 0]) - 50.0)

@@ -177,28 +177,52 @@ def kernel_gradients(S: np.ndarray, centers: np.ndarray, eps: float, box=(None, 
     return np.where(inside, g * (1.0 - dd / phi**2)[..., None], g)
 
 
-def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_model=None,
-                   damping: bool = True, ridge: float = 1e-6, seed: int = 0, stride: int = 1,
-                   centers=None, clamp: bool = True, smooth: float = 0.0,
-                   max_penalty_samples: int = 4000) -> tuple[RbfParams, dict]:
-    """Least-squares RBF correction from control forces (module docstring).
+@dataclass
+class FitSystem:
+    """The assembled least-squares problem of a correction fit: the normal equations (N, rhs,
+    yy = |y|^2) over all frames for fixed centres, and what the regularised solves need. One
+    system serves every (ridge, smooth) candidate of an iteration (:func:`solve_fit`)."""
 
-    nominal_model: the model without correction; frames: list of FitFrames; current_model: the
-    same model with the current correction (or None); damping: also fit the strain-dependent alpha_K change;
-    ridge: Tikhonov weight relative to the mean diagonal of the (column-normalised) normal
-    matrix; stride: use every stride-th frame; centers: (C, eps) to reuse instead of k-means;
-    clamp: clamp the kernels to the centres' box (RbfParams.box); smooth: weight of the
-    tangent penalty of the RBF part (module docstring; 0: none), evaluated on at most
-    max_penalty_samples of the fitted stretches (drawn with `seed`).
-    Returns (params, info) with info = dict(residual_ratio, frames, parameters)."""
+    N: np.ndarray
+    rhs: np.ndarray
+    yy: float
+    count: int
+    centers: np.ndarray
+    epsilon: float
+    box: tuple
+    clamp: bool
+    damping: bool
+    samples: np.ndarray
+    modulus: float
+    seed: int
+    max_penalty_samples: int
+    _penalty: np.ndarray | None = None
+
+    def penalty(self) -> np.ndarray:
+        """Pk (c, c): mean over the (subsampled) fitted stretches of grad g_k . grad g_l, so that
+        the mean squared tangent of the RBF part of one stress component is w^T Pk w (cached)."""
+        if self._penalty is None:
+            S = self.samples
+            if len(S) > self.max_penalty_samples:
+                S = S[np.random.default_rng(self.seed).choice(len(S), self.max_penalty_samples,
+                                                              replace=False)]
+            G = kernel_gradients(S, self.centers, self.epsilon, self.box)
+            self._penalty = np.einsum("ikb,ilb->kl", G, G) / len(S)
+        return self._penalty
+
+
+def fit_system(nominal_model, frames: list, num_centers: int = 24, current_model=None,
+               damping: bool = True, seed: int = 0, stride: int = 1, centers=None,
+               clamp: bool = True, max_penalty_samples: int = 4000) -> FitSystem:
+    """Assemble the fit's normal equations over all frames (one C++ call per recording) for
+    the centres `centers` = (C, eps) or k-means centres of the fitted stretches (`seed`).
+    Arguments as :func:`fit_correction`."""
     if not frames:
         raise ValueError("fit_correction: no frames")
     if nominal_model is None:
         raise ValueError("fit_correction: nominal_model is None")
-    samples = None
-    if centers is None or smooth > 0:
-        samples = np.concatenate([np.asarray(_core.fit.principal_stretches(
-            nominal_model, np.asarray(fr.X)[::stride])) for fr in frames])
+    samples = np.concatenate([np.asarray(_core.fit.principal_stretches(
+        nominal_model, np.asarray(fr.X)[::stride])) for fr in frames])
     if centers is None:
         C, eps = choose_centers(samples, num_centers, seed)
     else:
@@ -206,10 +230,7 @@ def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_m
     C = np.ascontiguousarray(C, float)
     c = len(C)
     box = centers_box(C, eps) if clamp else (None, None)
-    rest_phi = rbf_kernel(np.ones((1, 3)), C, eps, box)[0]
-    ne = 3 * (c + 3)
-    na = (c + 1) if damping else 0
-    p = ne + na
+    p = 3 * (c + 3) + ((c + 1) if damping else 0)
     N = np.zeros((p, p))
     rhs = np.zeros(p)
     yy = 0.0
@@ -228,36 +249,64 @@ def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_m
         rhs += rf
         yy += yf
         count += cf
+    modulus = float(np.median(2 * np.asarray(nominal_model.mu) + np.asarray(nominal_model.lam)))
+    return FitSystem(N, rhs, float(yy), int(count), C, float(eps), box, clamp, damping, samples,
+                     modulus, seed, max_penalty_samples)
+
+
+def solve_fit(system: FitSystem, ridge: float = 1e-6, smooth: float = 0.0) -> tuple[RbfParams, dict]:
+    """The regularised least-squares solve of an assembled system (module docstring): ridge
+    relative to the mean diagonal of the column-normalised normal matrix, smooth the weight of
+    the tangent penalty of the RBF part. Returns (params, info)."""
+    s = system
+    C, eps, c = s.centers, s.epsilon, len(s.centers)
+    N, rhs, yy = s.N, s.rhs, s.yy
+    ne = 3 * (c + 3)
+    p = len(rhs)
     scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
     Ns = N / scale[:, None] / scale[None]
     reg = ridge * np.trace(Ns) / p
     if smooth > 0:
-        rng = np.random.default_rng(seed)
-        S = samples if len(samples) <= max_penalty_samples else samples[
-            rng.choice(len(samples), max_penalty_samples, replace=False)]
-        G = kernel_gradients(S, C, eps, box)
-        Pk = np.einsum("ikb,ilb->kl", G, G) / len(S)  # mean |sum_k w_k grad g_k|^2 = w^T Pk w
-        modulus = float(np.median(2 * np.asarray(nominal_model.mu) + np.asarray(nominal_model.lam)))
         Pen = np.zeros((p, p))
         for a in range(3):
             sl = slice(a * (c + 3), a * (c + 3) + c)
-            Pen[sl, sl] = Pk
-        Pen *= smooth * yy / modulus**2
+            Pen[sl, sl] = s.penalty()
+        Pen *= smooth * yy / s.modulus**2
         Ns = Ns + Pen / scale[:, None] / scale[None]
     theta = np.linalg.solve(Ns + reg * np.eye(p), rhs / scale) / scale
     res2 = max(yy - 2 * theta @ rhs + theta @ N @ theta, 0.0)
     We = theta[:ne].reshape(3, c + 3)  # per stress component: [w (c), A row (3)]
     W = We[:, :c].T.copy()
     A = We[:, c:].copy()
-    bias = -(W.T @ rest_phi)
-    if damping:
+    bias = -(W.T @ rbf_kernel(np.ones((1, 3)), C, eps, s.box)[0])
+    if s.damping:
         wa, a0 = theta[ne:ne + c].copy(), float(theta[ne + c])
     else:
         wa, a0 = np.zeros(0), 0.0
-    params = RbfParams(C, W, A, bias, wa, a0, eps, clamp)
-    info = {"residual_ratio": float(np.sqrt(res2 / yy)) if yy > 0 else 0.0, "frames": count,
+    params = RbfParams(C, W, A, bias, wa, a0, eps, s.clamp)
+    info = {"residual_ratio": float(np.sqrt(res2 / yy)) if yy > 0 else 0.0, "frames": s.count,
             "parameters": p, "centers": c, "epsilon": eps, "smooth": smooth}
     return params, info
+
+
+def fit_correction(nominal_model, frames: list, num_centers: int = 24, current_model=None,
+                   damping: bool = True, ridge: float = 1e-6, seed: int = 0, stride: int = 1,
+                   centers=None, clamp: bool = True, smooth: float = 0.0,
+                   max_penalty_samples: int = 4000) -> tuple[RbfParams, dict]:
+    """Least-squares RBF correction from control forces (module docstring):
+    :func:`fit_system` then :func:`solve_fit`.
+
+    nominal_model: the model without correction; frames: list of FitFrames; current_model: the
+    same model with the current correction (or None); damping: also fit the strain-dependent alpha_K change;
+    ridge: Tikhonov weight relative to the mean diagonal of the (column-normalised) normal
+    matrix; stride: use every stride-th frame; centers: (C, eps) to reuse instead of k-means;
+    clamp: clamp the kernels to the centres' box (RbfParams.box); smooth: weight of the
+    tangent penalty of the RBF part (module docstring; 0: none), evaluated on at most
+    max_penalty_samples of the fitted stretches (drawn with `seed`).
+    Returns (params, info) with info = dict(residual_ratio, frames, parameters)."""
+    system = fit_system(nominal_model, frames, num_centers, current_model, damping, seed, stride,
+                        centers, clamp, max_penalty_samples)
+    return solve_fit(system, ridge, smooth)
 
 
 def extension_probes(nominal_model, frames: list, factor: float = 2.0, max_samples: int = 4000,

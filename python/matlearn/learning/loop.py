@@ -49,8 +49,8 @@ from ..clouds.tracking import TrackOptions
 from ..embedding import embed_points
 from ..recording import load_recording
 from ..replay import initial_state, interpolate_frames, simulate_recording
-from .fit import (FitFrames, RbfParams, extension_probes, fit_correction, project_linear_part,
-                  tangent_margin)
+from .fit import (FitFrames, RbfParams, extension_probes, fit_system, project_linear_part,
+                  solve_fit, tangent_margin)
 from .initial import initial_trajectory
 from .pod import pod_basis
 from .spacetime import build_problem, constrained_vertices, solve_spacetime
@@ -422,14 +422,14 @@ class Learner:
                 return np.inf, None, None, margin
             return (*self._train_error(q), margin)
 
+        # the normal equations do not depend on the weights: assembled once for all candidates
+        system = fit_system(self.nominal, frames, opt.centers,
+                            current_model=current_model if params is not None else None,
+                            damping=opt.damping, seed=opt.seed + k, centers=centers)
         pairs = [(r, s) for s in opt.smoothing for r in opt.ridges]
         while pairs:
             ridge, smooth = pairs.pop(0)
-            p, info = fit_correction(self.nominal, frames, opt.centers,
-                                     current_model=current_model if params is not None else None,
-                                     damping=opt.damping, ridge=ridge, seed=opt.seed + k, centers=centers,
-                                     smooth=smooth)
-            centers = (p.centers, p.epsilon)
+            p, info = solve_fit(system, ridge, smooth)
             info["ridge"], info["smooth"] = ridge, smooth
             err, errs, sims, info["tangent_margin"] = evaluate(p)
             info["train_max_error_pct"] = float(err)
