@@ -122,21 +122,7 @@ void CholmodSolver::factorize(const SpMat& A) {
 VecX CholmodSolver::solve(const VecX& b) const {
   if (!factorized_) throw std::logic_error("CholmodSolver: solve() called before factorize()");
   if (b.size() != n_) throw InvalidInput("CholmodSolver: right-hand side has wrong size");
-  auto* c = reinterpret_cast<cholmod_common*>(common_);
-  auto* L = reinterpret_cast<cholmod_factor*>(factor_);
-  cholmod_dense bd{};
-  bd.nrow = n_;
-  bd.ncol = 1;
-  bd.nzmax = n_;
-  bd.d = n_;
-  bd.x = const_cast<double*>(b.data());
-  bd.xtype = CHOLMOD_REAL;
-  bd.dtype = CHOLMOD_DOUBLE;
-  cholmod_dense* x = cholmod_solve(CHOLMOD_A, L, &bd, c);
-  if (!x) throw NumericalError("CHOLMOD solve failed");
-  VecX out = Eigen::Map<VecX>(static_cast<double*>(x->x), n_);
-  cholmod_free_dense(&x, c);
-  return out;
+  return solve_many(b).col(0);  // one right-hand side: the same CHOLMOD dense solve
 }
 
 MatX CholmodSolver::solve_many(const MatX& B) const {

@@ -36,19 +36,20 @@ LinearisedReplay::LinearisedReplay(const fem::Model& mesh_model, const VecXi& fi
   solver_.analyze(A_);
 }
 
+void LinearisedReplay::factorize_at(int step) {
+  try {
+    solver_.factorize(A_);
+  } catch (const NumericalError& err) {
+    std::ostringstream os;
+    os << "step " << step << ", Newton iteration 0: " << err.what();
+    throw NumericalError(os.str());
+  }
+  have_factor_ = true;
+  ++stats_.factorizations;
+}
+
 VecX LinearisedReplay::solve(const VecX& b, int step) {
-  auto refactor = [&]() {
-    try {
-      solver_.factorize(A_);
-    } catch (const NumericalError& err) {
-      std::ostringstream os;
-      os << "step " << step << ", Newton iteration 0: " << err.what();
-      throw NumericalError(os.str());
-    }
-    have_factor_ = true;
-    ++stats_.factorizations;
-  };
-  if (!have_factor_) refactor();
+  if (!have_factor_) factorize_at(step);
   const double bnorm = b.norm();
   if (bnorm == 0) return VecX::Zero(b.size());
   const auto A = A_.selfadjointView<Eigen::Upper>();
@@ -75,11 +76,11 @@ VecX LinearisedReplay::solve(const VecX& b, int step) {
     stats_.pcg_iterations += std::min(it, max_it_);
   }
   if (it > max_it_ || !(r.norm() <= tol_ * bnorm) || !x.allFinite()) {
-    refactor();  // stale preconditioner: factorise this matrix and solve directly
+    factorize_at(step);  // stale preconditioner: factorise this matrix and solve directly
     ++stats_.direct_fallbacks;
     return solver_.solve(b);
   }
-  if (it > refresh_) refactor();  // drifting: a fresh factor for the next steps
+  if (it > refresh_) factorize_at(step);  // drifting: a fresh factor for the next steps
   return x;
 }
 

@@ -55,6 +55,8 @@ class LinearisedReplay {
 
  private:
   VecX solve(const VecX& b, int step);
+  /// Factorises A_ (errors name the step), counts it in the stats.
+  void factorize_at(int step);
   /// Adds the free-DOF velocity update dv to v, checks it for divergence (step s), and
   /// advances the state: vs = v, xs += h v.
   void advance(const VecX& dv, int s, MatX3& v, MatX3& vs, MatX3& xs);

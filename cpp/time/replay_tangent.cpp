@@ -86,15 +86,7 @@ MatX3 LinearisedReplay::tangent(const fem::Model& model, const MatX3& x0_in, con
     }
     const VecX g = step_residual(model, st, v, vs, mass, fconst);
     assemble_step_matrix(model, st, h_, mass, true, *assembler_, coeff_, diag_, A_);
-    try {
-      solver_.factorize(A_);
-    } catch (const NumericalError& err) {
-      std::ostringstream os;
-      os << "step " << s << ", Newton iteration 0: " << err.what();
-      throw NumericalError(os.str());
-    }
-    have_factor_ = true;
-    ++stats_.factorizations;
+    factorize_at(s);
     const VecX dv = solver_.solve(-g);
     VecX dv_full = VecX::Zero(3 * nv_);
     for (int d = 0; d < 3 * nv_; ++d)
