@@ -131,13 +131,7 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
     timings_.iterations = last_iters_;
     if (dv.norm() <= opts_.tolerance * (std::sqrt(vnorm2) + v_ref)) break;
   }
-  // A speed of 1e4 object sizes per step is no longer a simulation: report divergence.
-  if (!v.allFinite() || v.cwiseAbs().maxCoeff() * h_ > 1e4 * size_) {
-    std::ostringstream os;
-    os << "step " << steps_ << ": simulation diverged (velocities blew up; "
-       << "try a smaller time step or check the material parameters)";
-    throw NumericalError(os.str());
-  }
+  check_divergence(v, h_, size_, steps_);
   v_ = v;
   x_ = x0 + h_ * v;
   for (int i = 0; i < prescribed_.size(); ++i) x_.row(prescribed_[i]) = (*targets).row(i);
@@ -281,6 +275,15 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
                            std::to_string(r.norm() / ref) + "); try more load_steps");
   }
   v_.setZero();
+}
+
+void check_divergence(const MatX3& v, double h, double size, int step) {
+  if (!v.allFinite() || v.cwiseAbs().maxCoeff() * h > 1e4 * size) {
+    std::ostringstream os;
+    os << "step " << step << ": simulation diverged (velocities blew up; "
+       << "try a smaller time step or check the material parameters)";
+    throw NumericalError(os.str());
+  }
 }
 
 void assemble_step_matrix(const fem::Model& model, const fem::ElementState& st, double h,

@@ -98,4 +98,8 @@ void assemble_step_matrix(const fem::Model& model, const fem::ElementState& st, 
                           const VecX& mass, bool rayleigh_only, const fem::SparseAssembler& assembler,
                           VecX& coeff, VecX& diag, SpMat& A);
 
+// Throws NumericalError naming `step` when the velocities v are not finite or move faster than
+// 1e4 object sizes (`size`) per step of length h: no longer a simulation, a divergence.
+void check_divergence(const MatX3& v, double h, double size, int step);
+
 }  // namespace matlearn::time

@@ -145,12 +145,7 @@ void LinearisedReplay::advance(const VecX& dv, int s, MatX3& v, MatX3& vs, MatX3
   auto vdm = as_dofs(v);
   for (int d = 0; d < 3 * nv_; ++d)
     if (dof_map_[d] >= 0) vdm[d] += dv[dof_map_[d]];
-  if (!v.allFinite() || v.cwiseAbs().maxCoeff() * h_ > 1e4 * size_) {
-    std::ostringstream os;
-    os << "step " << s << ": simulation diverged (velocities blew up; "
-       << "try a smaller time step or check the material parameters)";
-    throw NumericalError(os.str());
-  }
+  check_divergence(v, h_, size_, s);
   vs = v;
   xs = xs + h_ * v;
 }
