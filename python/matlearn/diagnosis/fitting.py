@@ -270,13 +270,12 @@ def refine_region(problem, ctx, fit: Fit, target_size: int = 6, rounds: int = 4,
     discretisation: moves would fit those). A fit without stiffness contrast is first
     restarted from the tangent step of its two scales (region.restart_scales). Modifies
     ctx.region; returns the (possibly) improved fit."""
-    from .region import boundary_moves, restart_scales
+    from .region import boundary_moves, contrast, restart_scales
 
     def refit(params):
         return refine(problem, ctx, list(params), params, iterations=2)
 
-    t = np.asarray(fit.params.get("heterogeneity", [0.0, 0.0]), float)
-    if ctx.region is not None and ctx.region.any() and abs(t[0] - (t[1] if len(t) > 1 else 0.0)) < 1e-3:
+    if ctx.region is not None and ctx.region.any() and abs(contrast(fit.params)) < 1e-3:
         fit = restart_scales(problem, ctx, fit, refit, progress=progress)
 
     return boundary_moves(problem, ctx, fit, refit, target_size=target_size, rounds=rounds,

@@ -23,6 +23,13 @@ import numpy as np
 from .linearised import stiffness_jacobian
 
 
+def contrast(params: dict) -> float:
+    """Log-stiffness contrast of the region against the rest in heterogeneity parameters
+    [log region, log rest] (0 without a fit)."""
+    t = np.asarray(params.get("heterogeneity", [0.0, 0.0]), float)
+    return float(t[0] - (t[1] if len(t) > 1 else 0.0))
+
+
 def restart_scales(problem, ctx, fit, refine_fn, progress=None):
     """A two-stiffness fit that ended without contrast (region scale = rest scale, e.g. a
     Levenberg-Marquardt run that started from the baseline because the linearised start
@@ -106,9 +113,8 @@ def boundary_moves(problem, ctx, fit, refine_fn, target_size: int = 6, rounds: i
                 progress(f"region boundary: fit rss {fit.rss:.3e} within the floor {floor:.3e}, "
                          "boundary kept")
             break
-        t = np.asarray(fit.params["heterogeneity"], float)
-        contrast = float(t[0] - (t[1] if len(t) > 1 else 0.0))
-        if abs(contrast) < 1e-3:
+        c = contrast(fit.params)
+        if abs(c) < 1e-3:
             if progress:
                 progress("region boundary: no stiffness contrast to locate")
             break
@@ -120,7 +126,7 @@ def boundary_moves(problem, ctx, fit, refine_fn, target_size: int = 6, rounds: i
         # +contrast (rest -> region)
         Dir = np.zeros((ctx.mesh.num_tets, len(groups)))
         for j, g in enumerate(groups):
-            Dir[g, j] = np.where(region[g], -contrast, contrast)
+            Dir[g, j] = np.where(region[g], -c, c)
         r_h, D = stiffness_jacobian(problem, ctx, fit.params, Dir)
         chosen = greedy_moves(r_h, D)
         if not chosen:
