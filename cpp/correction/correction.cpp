@@ -1,6 +1,7 @@
 #include "correction/correction.hpp"
 
 #include <cmath>
+#include <type_traits>
 
 namespace matlearn::correction {
 
@@ -70,16 +71,100 @@ MlpCorrection::MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX 
     if (width > kMaxWidth)
       throw InvalidInput("MlpCorrection: layers wider than " + std::to_string(kMaxWidth) + " are not supported");
   }
-  if (width != 3) throw InvalidInput("MlpCorrection: last layer must have 3 outputs");
-  if (in_mean_.size() != 6 || in_std_.size() != 6 || out_mean_.size() != 3 || out_std_.size() != 3)
-    throw InvalidInput("MlpCorrection: normalisation vectors must have sizes 6, 6, 3, 3");
+  if (width != 3 && width != 4)
+    throw InvalidInput("MlpCorrection: last layer must have 3 outputs (dPh) or 4 (dPh, dalpha), got " +
+                       std::to_string(width));
+  outputs_ = width;
+  if (in_mean_.size() != 6 || in_std_.size() != 6 || out_mean_.size() != width || out_std_.size() != width)
+    throw InvalidInput("MlpCorrection: normalisation vectors must have sizes 6, 6, " + std::to_string(width) +
+                       ", " + std::to_string(width) + " (inputs, outputs of the last layer)");
   if ((in_std_.array() <= 0).any() || (out_std_.array() <= 0).any())
     throw InvalidInput("MlpCorrection: normalisation std must be positive");
+  for (const auto& L : layers_)
+    if (!L.W.allFinite() || !L.b.allFinite())
+      throw InvalidInput("MlpCorrection: weights contain NaN or Inf");
 }
+
+namespace {
+
+inline double elu(double z, double* slope) {
+  if (z > 0) {
+    *slope = 1.0;
+    return z;
+  }
+  const double y = std::expm1(z);
+  *slope = y + 1.0;
+  return y;
+}
+
+/// Fast path of MlpCorrection::evaluate for the distillation architecture 6 -> H -> H -> 3|4
+/// with fixed-size Eigen types; NC = 3 propagates only the Fh Jacobian (a net whose first-layer
+/// Fhdot columns are zero), NC = 6 both. Same arithmetic as the generic loop.
+template <int H, int NC>
+void mlp_fixed(const std::vector<DenseLayer>& L, const VecX& in_mean, const VecX& in_std,
+               const VecX& out_mean, const VecX& out_std, const MatX3& Fh, const MatX3& Fhdot,
+               CorrectionOutput& out) {
+  using VH = Eigen::Matrix<double, H, 1>;
+  const int m = Fh.rows(), no = L[2].W.rows();
+  const Eigen::Matrix<double, H, 6> W0 = L[0].W;
+  const Eigen::Matrix<double, H, NC> W0J = W0.template leftCols<NC>() *
+                                           in_std.head<NC>().cwiseInverse().asDiagonal();
+  const Eigen::Matrix<double, H, H> W1 = L[1].W;
+  Eigen::Matrix<double, 4, H> W2 = Eigen::Matrix<double, 4, H>::Zero();
+  W2.topRows(no) = L[2].W;
+  const VH b0 = L[0].b, b1 = L[1].b;
+  Eigen::Vector4d b2 = Eigen::Vector4d::Zero(), om = Eigen::Vector4d::Zero(), os = Eigen::Vector4d::Zero();
+  b2.head(no) = L[2].b;
+  om.head(no) = out_mean;
+  os.head(no) = out_std;
+  using Vec6 = Eigen::Matrix<double, 6, 1>;
+  const Vec6 im = in_mean, is = in_std.cwiseInverse();
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < m; ++e) {
+    Vec6 a;
+    a << Fh.row(e).transpose(), Fhdot.row(e).transpose();
+    a = (a - im).cwiseProduct(is);
+    VH z = W0 * a + b0;
+    Eigen::Matrix<double, H, NC> J = W0J;
+    for (int i = 0; i < H; ++i) {
+      double d;
+      z[i] = elu(z[i], &d);
+      J.row(i) *= d;
+    }
+    VH z1 = W1 * z + b1;
+    Eigen::Matrix<double, H, NC> J1 = W1 * J;
+    for (int i = 0; i < H; ++i) {
+      double d;
+      z1[i] = elu(z1[i], &d);
+      J1.row(i) *= d;
+    }
+    const Eigen::Vector4d y = (W2 * z1 + b2).cwiseProduct(os) + om;
+    const Eigen::Matrix<double, 3, NC> Jy = os.head<3>().asDiagonal() * (W2.template topRows<3>() * J1);
+    out.dPh.row(e) = y.head<3>().transpose();
+    out.d_dFh[e] = Jy.template leftCols<3>();
+    if constexpr (NC == 6) out.d_dFhdot[e] = Jy.template rightCols<3>();
+    if (no == 4) out.dalpha[e] = y[3];
+  }
+}
+
+}  // namespace
 
 void MlpCorrection::evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const {
   const int m = Fh.rows();
   resize_output(m, out);
+  if (layers_.size() == 3 && layers_[0].W.rows() == layers_[1].W.rows()) {
+    const int H = layers_[0].W.rows();
+    const bool rate = !layers_[0].W.rightCols<3>().isZero(0.0);
+    const auto run = [&](auto h, auto nc) {
+      mlp_fixed<decltype(h)::value, decltype(nc)::value>(layers_, in_mean_, in_std_, out_mean_,
+                                                         out_std_, Fh, Fhdot, out);
+    };
+    using I3 = std::integral_constant<int, 3>;
+    using I6 = std::integral_constant<int, 6>;
+    using I16 = std::integral_constant<int, 16>;
+    if (H == 6) return rate ? run(I6{}, I6{}) : run(I6{}, I3{});
+    if (H == 16) return rate ? run(I16{}, I6{}) : run(I16{}, I3{});
+  }
   // Fixed-capacity temporaries (no heap allocation per element): layers are at most kMaxWidth wide.
   using SmallV = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kMaxWidth, 1>;
   using SmallM = Eigen::Matrix<double, Eigen::Dynamic, 6, 0, kMaxWidth, 6>;
@@ -94,19 +179,22 @@ void MlpCorrection::evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutp
       SmallM Jz = layers_[l].W * Ja;
       if (l + 1 < layers_.size()) {
         for (int i = 0; i < z.size(); ++i) {
-          const double d = z[i] > 0 ? 1.0 : std::exp(z[i]);
-          z[i] = z[i] > 0 ? z[i] : std::expm1(z[i]);
+          double d;
+          z[i] = elu(z[i], &d);
           Jz.row(i) *= d;
         }
       }
       a = z;
       Ja = Jz;
     }
-    const Vec3 y = a.cwiseProduct(out_std_) + out_mean_;
-    const Eigen::Matrix<double, 3, 6> Jy = out_std_.asDiagonal() * Ja;
-    out.dPh.row(e) = y.transpose();
+    const SmallV y = a.cwiseProduct(out_std_) + out_mean_;
+    const Eigen::Matrix<double, 3, 6> Jy = out_std_.head<3>().asDiagonal() * Ja.topRows<3>();
+    out.dPh.row(e) = y.head<3>().transpose();
     out.d_dFh[e] = Jy.leftCols<3>();
     out.d_dFhdot[e] = Jy.rightCols<3>();
+    // The Model uses dalpha's value only (its stretch derivative is left out of the tangent, as
+    // for RbfCorrection).
+    if (outputs_ == 4) out.dalpha[e] = y[3];
   }
 }
 

@@ -70,8 +70,12 @@ struct DenseLayer {
   VecX b;
 };
 
-/// MLP correction N(Fh, Fhdot) -> dPh with ELU between layers (none after the last), inputs
+/// MLP correction N(Fh, Fhdot) with ELU between layers (none after the last), inputs
 /// normalised (x - in_mean) / in_std and outputs de-normalised y * out_std + out_mean.
+/// The last layer has 3 outputs (dPh) or 4: (dPh, dalpha), dalpha being the additive change of
+/// the element's stiffness-damping alpha_K exactly as RbfCorrection's damping part (the Model
+/// clamps alpha_K + dalpha at 0, so this damping is passive by construction). Networks whose
+/// first-layer Fhdot columns are zero are rate-independent: d_dFhdot is then exactly 0.
 class MlpCorrection final : public Correction {
  public:
   MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX in_std, VecX out_mean,
@@ -81,6 +85,7 @@ class MlpCorrection final : public Correction {
  private:
   std::vector<DenseLayer> layers_;
   VecX in_mean_, in_std_, out_mean_, out_std_;
+  int outputs_;  ///< 3 (dPh) or 4 (dPh, dalpha)
 };
 
 }  // namespace matlearn::correction

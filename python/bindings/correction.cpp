@@ -52,11 +52,13 @@ void define_correction(py::module_& m) {
             c.evaluate(a, b, out);
             const long n = a.rows();
             py::array_t<double> J({n, 3L, 3L}), Jd({n, 3L, 3L});
+            auto Ju = J.mutable_unchecked<3>();  // shapes fixed just above
+            auto Jdu = Jd.mutable_unchecked<3>();
             for (long e = 0; e < n; ++e)
               for (int i = 0; i < 3; ++i)
                 for (int j = 0; j < 3; ++j) {
-                  J.mutable_at(e, i, j) = out.d_dFh[e](i, j);
-                  Jd.mutable_at(e, i, j) = out.d_dFhdot[e](i, j);
+                  Ju(e, i, j) = out.d_dFh[e](i, j);
+                  Jdu(e, i, j) = out.d_dFhdot[e](i, j);
                 }
             return py::make_tuple(out.dPh, J, Jd, out.dalpha);
           },
@@ -92,7 +94,9 @@ void define_correction(py::module_& m) {
            py::arg("layers"), py::arg("in_mean"), py::arg("in_std"), py::arg("out_mean"),
            py::arg("out_std"),
            "layers: list of (W (out x in), b (out)); ELU between layers; 6 inputs (Fh, Fhdot), "
-           "3 outputs.");
+           "3 outputs (dPh, Pa) or 4 (dPh, dalpha_K in s: the change of the element's "
+           "stiffness-damping coefficient, clamped like the RBF's so alpha_K stays >= 0); "
+           "out_mean/out_std have one entry per output.");
 
   py::class_<PythonCorrection, Correction, std::shared_ptr<PythonCorrection>>(m, "PythonCorrection")
       .def(py::init<py::function>(), py::arg("fn"));

@@ -45,7 +45,7 @@ def run(args) -> int:
         from ..learning.io import mlp_correction
 
         if log:
-            log("distilling into an MLP 6-6-6-3 ...")
+            log("distilling into an MLP 6-6-6-4 (stress + damping change) ...")
         tscene = res["scene"]  # cloud recordings replaced by their tracked markers
         X, Y = simulation_samples(tscene, params.correction(), tscene.recordings_with_role("train"),
                                   seed=args.seed)

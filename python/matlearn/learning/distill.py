@@ -1,15 +1,29 @@
 """Distillation of the learned RBF correction into a small MLP (method.md section 6).
 
+What the MLP must reproduce. The RBF correction (cpp/correction) has two parts, both functions
+of the principal stretches Fh only: an elastic principal-stress change dPh(Fh) and a damping part
+dalpha(Fh), the additive change of the element's stiffness-proportional Rayleigh coefficient
+alpha_K. The Model (cpp/fem/model.cpp) applies dalpha as (alpha_K + dalpha)_+ times the nominal
+(PSD-projected) stiffness-damping stress, which acts on *all* strain rates of the element, shear
+rates included. A network with 3 principal-stress outputs cannot express that (it only sees the
+diagonal of U^T Fdot V); folding the damping into 3 outputs made the distilled simulations drift
+0.6-1.3 % on bar_damping_2. So the MLP has 4 outputs, (dPh, dalpha), 6 -> 6 -> 6 -> 4, and its
+dalpha enters the Model through the same clamped path as the RBF's (total alpha_K never negative:
+passive by construction).
+
+Inputs are (Fh, Fhdot), 6 as in the paper. By default the Fhdot inputs are masked (their
+first-layer weights are zero, exported as zero columns): the RBF being distilled has no rate
+dependence besides dalpha, and an MLP stress that depended on Fhdot could add energy (nothing
+makes such a learned viscous stress dissipative). `rate_inputs=True` keeps them.
+
 Samples come from many forward simulations with the RBF model: the train recordings' motions
 from their initial poses scaled about the rest shape by factors <= 1, i.e. the range of states
 the simulations actually visit (larger factors put most samples where the RBF itself
 extrapolates, and their spread dominates the normalisation). Frames are subsampled with a
-stride; `offset` picks a disjoint set of frames for held-out agreement. The target is the total principal-stress correction: the elastic RBF part
-plus the damping part expressed as a principal stress, dalpha_eff * (dPh_nom/dFh) Fhdot, where
-dalpha_eff is the change of the clamped alpha_K. The MLP is 6 -> 6 -> 6 -> 3 with batch norm +
+stride; `offset` picks a disjoint set of frames for held-out agreement. Training: batch norm +
 ELU, inputs and outputs normalised to zero mean / unit variance, samples shuffled, seeded; for
-export the batch norm is folded into the preceding linear layers and the network runs in C++
-(`_core.correction.MlpCorrection`).
+export the batch norm (and the input mask) is folded into the linear layers and the network runs
+in C++ (`_core.correction.MlpCorrection`).
 """
 from __future__ import annotations
 
@@ -17,51 +31,29 @@ import time
 
 import numpy as np
 
-from .. import _core
 from ..replay import initial_state, simulate_recording
 
+TARGETS = ("dP1", "dP2", "dP3", "dalpha")  # target columns: principal stress change (Pa), alpha_K change (s)
 
-def correction_samples(nominal_model, rbf_model, X, V, material) -> tuple[np.ndarray, np.ndarray]:
-    """Inputs (k, 6) = (Fh, Fhdot) and targets (k, 3) over frames X, V (F, n, 3); material =
-    (law name, mu (m,), lambda (m,), edits) of the nominal model."""
+
+def correction_samples(model, rbf_correction, X, V) -> tuple[np.ndarray, np.ndarray]:
+    """Inputs (k, 6) = (Fh, Fhdot) and targets (k, 4) = (dPh, dalpha) of the RBF correction over
+    frames X, V (F, n, 3) of `model` (one C++ call per frame over all elements)."""
     ins, outs = [], []
-    mat = nominal_model
-    for x, v in zip(X, V):  # per frame, each a C++ call over all elements
-        Fh, Fhd, Ph_tot, aK = rbf_model.principal_kinematics(x, v)
-        _, _, Ph_nom, aK_nom = mat.principal_kinematics(x, v)
-        Fh, Fhd = np.asarray(Fh), np.asarray(Fhd)
-        dP = np.asarray(Ph_tot) - np.asarray(Ph_nom)
-        dalpha = np.asarray(aK) - np.asarray(aK_nom)
-        # Damping stress per unit alpha_K in the principal frame: diag(dPh/dFh) * Fhdot.
-        dPn = _fd_diag(material, Fh, 1e-6)
+    for x, v in zip(X, V):
+        Fh, Fhd = (np.ascontiguousarray(a) for a in model.principal_kinematics(x, v)[:2])
+        dP, _, _, dal = rbf_correction.evaluate(Fh, Fhd)
         ins.append(np.concatenate([Fh, Fhd], axis=1))
-        outs.append(dP + dalpha[:, None] * dPn * Fhd)
+        outs.append(np.concatenate([np.asarray(dP), np.asarray(dal)[:, None]], axis=1))
     return np.concatenate(ins), np.concatenate(outs)
-
-
-def _fd_diag(material, Fh, h):
-    """Diagonal of dPh_nominal/dFh per element (m, 3) by central differences of the C++
-    principal stress (vectorised over elements)."""
-    name, mu, lam, edits = material
-    out = np.empty_like(Fh)
-    for i in range(3):
-        e = np.zeros(3)
-        e[i] = h
-        Pp = np.asarray(_core.fem.principal_stress(name, Fh + e, mu, lam, edits))
-        Pm = np.asarray(_core.fem.principal_stress(name, Fh - e, mu, lam, edits))
-        out[:, i] = (Pp[:, i] - Pm[:, i]) / (2 * h)
-    return out
 
 
 def simulation_samples(scene, rbf_correction, recordings, scales=(0.5, 0.75, 1.0),
                        max_samples: int = 30000, seed: int = 0, stride: int = 5, offset: int = 0):
     """Run the RBF model through every recording's motion from its initial pose scaled about
-    the rest shape by each factor; collect (inputs, targets) on frames offset, offset + stride,
-    ... (a different offset gives held-out frames of the same simulations)."""
-    nominal = scene.model()
+    the rest shape by each factor; collect (inputs (k, 6), targets (k, 4)) on frames offset,
+    offset + stride, ... (a different offset gives held-out frames of the same simulations)."""
     rbf_model = scene.model(rbf_correction)
-    mu, lam = scene.material.lame(scene.mesh.num_tets)
-    material = (scene.material.model, mu, lam, [tuple(map(float, e)) for e in scene.material.edits])
     V0 = np.asarray(scene.mesh.vertices, float)
     ins, outs = [], []
     for rec in recordings:
@@ -72,7 +64,7 @@ def simulation_samples(scene, rbf_correction, recordings, scales=(0.5, 0.75, 1.0
                 _, X, Vel = simulate_recording(scene, rbf_model, rec, state=(xs, v0))
             except RuntimeError:
                 continue  # a scaled pose the model cannot hold: skip it
-            a, b = correction_samples(nominal, rbf_model, X[offset::stride], Vel[offset::stride], material)
+            a, b = correction_samples(rbf_model, rbf_correction, X[offset::stride], Vel[offset::stride])
             ins.append(a)
             outs.append(b)
     if not ins:
@@ -85,12 +77,60 @@ def simulation_samples(scene, rbf_correction, recordings, scales=(0.5, 0.75, 1.0
     return X, Y
 
 
-def train_mlp(X, Y, epochs: int = 60, batch: int = 1024, lr: float = 1e-2, seed: int = 0,
-              hidden: int = 6) -> tuple[dict, dict]:
-    """Train 6 -> hidden -> hidden -> 3 (BatchNorm + ELU) on normalised data; returns (exported
-    dict with BN folded, info)."""
+def make_net(outputs: int = 4, hidden: int = 6, rate_inputs: bool = False):
+    """The torch network (float64): input mask (Fhdot columns zero unless rate_inputs), then
+    Linear 6->hidden, BatchNorm, ELU, Linear hidden->hidden, BatchNorm, ELU, Linear hidden->outputs."""
     import torch
 
+    class Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.register_buffer("mask", torch.tensor([1.0] * 3 + [1.0 if rate_inputs else 0.0] * 3,
+                                                      dtype=torch.float64))
+            self.body = torch.nn.Sequential(
+                torch.nn.Linear(6, hidden), torch.nn.BatchNorm1d(hidden), torch.nn.ELU(),
+                torch.nn.Linear(hidden, hidden), torch.nn.BatchNorm1d(hidden), torch.nn.ELU(),
+                torch.nn.Linear(hidden, outputs)).double()
+
+        def forward(self, x):
+            return self.body(x * self.mask)
+
+    if outputs not in (3, 4):
+        raise ValueError(f"outputs must be 3 (dPh) or 4 (dPh, dalpha), got {outputs}")
+    return Net()
+
+
+def export_net(net, in_mean, in_std, out_mean, out_std) -> dict:
+    """dict(layers=[(W, b), ...], in_mean, in_std, out_mean, out_std) for MlpCorrection: the
+    input mask and the batch norms (running statistics, eval mode) folded into the linear layers."""
+    import torch
+
+    mods = list(net.body)
+    mask = net.mask.detach().numpy()
+    layers = []
+    for k, i in enumerate((0, 3)):
+        lin, bn = mods[i], mods[i + 1]
+        g = (bn.weight / torch.sqrt(bn.running_var + bn.eps)).detach().numpy()
+        W = lin.weight.detach().numpy() * g[:, None]
+        if k == 0:
+            W = W * mask[None, :]
+        b = (lin.bias.detach().numpy() - bn.running_mean.detach().numpy()) * g + bn.bias.detach().numpy()
+        layers.append((W.copy(), b.copy()))
+    layers.append((mods[6].weight.detach().numpy().copy(), mods[6].bias.detach().numpy().copy()))
+    return {"layers": layers, "in_mean": np.asarray(in_mean, float), "in_std": np.asarray(in_std, float),
+            "out_mean": np.asarray(out_mean, float), "out_std": np.asarray(out_std, float)}
+
+
+def train_mlp(X, Y, epochs: int = 60, batch: int = 1024, lr: float = 1e-2, seed: int = 0,
+              hidden: int = 6, rate_inputs: bool = False) -> tuple[dict, dict]:
+    """Train 6 -> hidden -> hidden -> Y.shape[1] (BatchNorm + ELU) on normalised, shuffled
+    samples X (k, 6), Y (k, 4) = (dPh, dalpha) (or (k, 3): stress only); returns (exported dict
+    with BN folded, info)."""
+    import torch
+
+    X, Y = np.asarray(X, float), np.asarray(Y, float)
+    if X.ndim != 2 or X.shape[1] != 6 or Y.ndim != 2 or Y.shape[1] not in (3, 4) or len(X) != len(Y):
+        raise ValueError(f"train_mlp: need X (k, 6) and Y (k, 3 or 4), got {X.shape} and {Y.shape}")
     torch.manual_seed(seed)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # a 6-wide network gains nothing from threads
@@ -99,54 +139,55 @@ def train_mlp(X, Y, epochs: int = 60, batch: int = 1024, lr: float = 1e-2, seed:
     out_mean, out_std = Y.mean(0), Y.std(0) + 1e-12
     Xn = torch.tensor((X - in_mean) / in_std, dtype=torch.float64)
     Yn = torch.tensor((Y - out_mean) / out_std, dtype=torch.float64)
-    net = torch.nn.Sequential(
-        torch.nn.Linear(6, hidden), torch.nn.BatchNorm1d(hidden), torch.nn.ELU(),
-        torch.nn.Linear(hidden, hidden), torch.nn.BatchNorm1d(hidden), torch.nn.ELU(),
-        torch.nn.Linear(hidden, 3)).double()
+    net = make_net(Y.shape[1], hidden, rate_inputs)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
     n = len(Xn)
     t0 = time.time()
-    for _ in range(epochs):
-        net.train()
-        perm = torch.tensor(rng.permutation(n))
-        for i in range(0, n - 1, batch):
-            idx = perm[i:i + batch]
-            if len(idx) < 2:
-                continue
-            opt.zero_grad()
-            loss = torch.mean((net(Xn[idx]) - Yn[idx]) ** 2)
-            loss.backward()
-            opt.step()
-        sched.step()
-    torch.set_num_threads(threads)
-    net.eval()
-    with torch.no_grad():
-        mse = float(torch.mean((net(Xn) - Yn) ** 2))
-    layers = []
-    mods = list(net)
-    for i in (0, 3):
-        lin, bn = mods[i], mods[i + 1]
-        g = (bn.weight / torch.sqrt(bn.running_var + bn.eps)).detach().numpy()
-        W = lin.weight.detach().numpy() * g[:, None]
-        b = (lin.bias.detach().numpy() - bn.running_mean.detach().numpy()) * g + bn.bias.detach().numpy()
-        layers.append((W, b))
-    layers.append((mods[6].weight.detach().numpy().copy(), mods[6].bias.detach().numpy().copy()))
-    exported = {"layers": layers, "in_mean": in_mean, "in_std": in_std, "out_mean": out_mean,
-                "out_std": out_std}
-    return exported, {"train_mse_normalised": mse, "samples": int(n), "epochs": epochs,
-                      "train_s": time.time() - t0}
+    try:
+        for _ in range(epochs):
+            net.train()
+            perm = torch.tensor(rng.permutation(n))
+            for i in range(0, n - 1, batch):
+                idx = perm[i:i + batch]
+                if len(idx) < 2:
+                    continue
+                opt.zero_grad()
+                loss = torch.mean((net(Xn[idx]) - Yn[idx]) ** 2)
+                loss.backward()
+                opt.step()
+            sched.step()
+        net.eval()
+        with torch.no_grad():
+            per_out = torch.mean((net(Xn) - Yn) ** 2, dim=0).numpy()
+    finally:
+        torch.set_num_threads(threads)
+    exported = export_net(net, in_mean, in_std, out_mean, out_std)
+    return exported, {"train_mse_normalised": float(per_out.mean()),
+                      "train_mse_normalised_per_output": [float(v) for v in per_out],
+                      "samples": int(n), "epochs": epochs, "hidden": hidden, "outputs": int(Y.shape[1]),
+                      "rate_inputs": rate_inputs, "train_s": time.time() - t0}
+
+
+def _rel(err, ref) -> float:
+    return float(np.linalg.norm(err) / max(np.linalg.norm(ref - ref.mean(0)), 1e-300))
 
 
 def compare(rbf_correction, mlp_correction, X, Y, repeats: int = 5) -> dict:
-    """NN-vs-RBF agreement on samples (X (k, 6), RBF targets Y (k, 3)): relative L2 error
-    ||pred - Y|| / ||Y - mean(Y)||, and the evaluation speed ratio (RBF time / MLP time, same
-    inputs, same process, best of `repeats`; omitted when repeats is 0 or rbf_correction None)."""
+    """NN-vs-RBF agreement on samples X (k, 6) with RBF targets Y (k, 4) = (dPh, dalpha) (or
+    (k, 3)): relative L2 errors ||pred - Y|| / ||Y - mean(Y)|| of the stress columns
+    (`relative_error`) and of dalpha (`dalpha_relative_error`), max abs errors, and the evaluation
+    speed ratio (RBF time / MLP time, same inputs, same process, best of `repeats`; omitted when
+    repeats is 0 or rbf_correction None)."""
     Fh, Fhd = np.ascontiguousarray(X[:, :3]), np.ascontiguousarray(X[:, 3:])
-    pred = np.asarray(mlp_correction.evaluate(Fh, Fhd)[0])
-    err = pred - Y
-    rel = float(np.linalg.norm(err) / max(np.linalg.norm(Y - Y.mean(0)), 1e-300))
-    out = {"relative_error": rel, "max_abs_error_pa": float(np.abs(err).max()), "samples": int(len(X))}
+    r = mlp_correction.evaluate(Fh, Fhd)
+    pred = np.asarray(r[0])
+    err = pred - Y[:, :3]
+    out = {"relative_error": _rel(err, Y[:, :3]), "max_abs_error_pa": float(np.abs(err).max()),
+           "samples": int(len(X))}
+    if Y.shape[1] == 4:
+        e_a = np.asarray(r[3]) - Y[:, 3]
+        out.update({"dalpha_relative_error": _rel(e_a, Y[:, 3]), "dalpha_max_abs_error_s": float(np.abs(e_a).max())})
     if repeats < 1 or rbf_correction is None:
         return out
 
