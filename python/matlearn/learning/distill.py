@@ -50,14 +50,18 @@ def correction_samples(model, rbf_correction, X, V) -> tuple[np.ndarray, np.ndar
 
 def simulation_samples(scene, rbf_correction, recordings, scales=(0.5, 0.75, 1.0),
                        max_samples: int = 30000, seed: int = 0, stride: int = 5, offset: int = 0):
-    """Run the RBF model through every recording's motion from its initial pose scaled about
-    the rest shape by each factor; collect (inputs (k, 6), targets (k, 4)) on frames offset,
+    """Run the RBF model through every recording's motion from its initial pose (held by the RBF
+    model, or by the nominal one where the RBF model's static solve fails) scaled about the rest
+    shape by each factor; collect (inputs (k, 6), targets (k, 4)) on frames offset,
     offset + stride, ... (a different offset gives held-out frames of the same simulations)."""
     rbf_model = scene.model(rbf_correction)
     V0 = np.asarray(scene.mesh.vertices, float)
     ins, outs = [], []
     for rec in recordings:
-        x0, v0 = initial_state(scene, rbf_model, rec)
+        try:
+            x0, v0 = initial_state(scene, rbf_model, rec)
+        except RuntimeError:  # the RBF model cannot hold the pose: start from the nominal's
+            x0, v0 = initial_state(scene, scene.model(), rec)
         for s in scales:
             xs = V0 + s * (np.asarray(x0) - V0)
             try:
