@@ -104,6 +104,18 @@ def test_mlp_rejects_malformed_networks():
         train_mlp(np.zeros((10, 6)), np.zeros((10, 5)))
 
 
+@pytest.mark.parametrize("outputs", [3, 4])
+def test_saved_mlp_loads_and_evaluates_identically(tmp_path, outputs):
+    # 4-output models and models saved before the dalpha output (3 outputs) both load.
+    from matlearn.learning.io import load_model, save_model
+
+    _, _, ex = _random_net(outputs, 6, False, seed=11)
+    save_model(tmp_path, RbfParams(np.ones((1, 3)), np.zeros((1, 3))), ex, use="mlp")
+    Fh, Fhd = _inputs(50, 3)
+    for a, b in zip(load_model(tmp_path).evaluate(Fh, Fhd), mlp_correction(ex).evaluate(Fh, Fhd)):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_trained_mlp_matches_smooth_target_on_held_out_samples():
     def data(n, seed):
         Fh, Fhd = _inputs(n, seed)
