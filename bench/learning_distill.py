@@ -8,11 +8,13 @@ model (train motions from 0.5x, 0.75x, 1x their initial poses: the range the sim
 trains the MLP (stretch-rate inputs masked, learning/distill.py), and reports
   * NN-vs-RBF agreement (relative L2 error of the stress outputs and of dalpha) on the training
     samples and on held-out samples (other frames of the same simulations), and the held-out
-    stress error by regime (first principal stretch: compression / near rest / tension),
+    stress error by regime (near rest, tension- or compression-dominated),
   * agreement of forward simulations: the max vertex-position difference between the MLP and
     the RBF model replaying every test recording, in % of the object size, and the test error
-    of both models against the recordings (both re-scored now, by the same code),
-  * speed: correction-evaluation time RBF / MLP on the same inputs (best of 5, same process),
+    of both models against the recordings (both re-scored now, by the same code); the sample
+    agreement on the test replays' states and the share of them outside the training range,
+  * speed: correction-evaluation time RBF / MLP on the same inputs (interleaved, best of 15,
+    same process; through the binding, whose conversion of the outputs is the same for both),
     and whole forward-simulation time RBF / MLP (the correction is a small part of a step),
   * a capacity check: the same pipeline with 16-wide hidden layers (6-16-16-4).
 Writes bench/results/learning_distill.json.
@@ -31,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from matlearn.learning.distill import compare, simulation_samples, train_mlp
+from matlearn.learning.distill import compare, correction_samples, simulation_samples, train_mlp
 from matlearn.learning.fit import RbfParams
 from matlearn.learning.io import mlp_correction
 from matlearn.replay import initial_state, score, simulate_recording
@@ -55,17 +57,22 @@ def best_rbf(run: Path) -> tuple[RbfParams | None, dict, str | None]:
         return RbfParams.from_arrays(z), best, doc.get("code")
 
 
-def forward_agreement(scene, rbf, mlp) -> dict:
+def forward_agreement(scene, rbf, mlp, X_train=None) -> dict:
     """Replay every test recording with the RBF and the MLP model from the same initial state:
-    max vertex-position difference (% of object size) and the simulation time ratio."""
-    diffs, t_rbf, t_mlp = [], 0.0, 0.0
+    max vertex-position difference (% of object size) and the simulation time ratio. With the
+    training samples X_train (k, 6): also the MLP-vs-RBF stress and dalpha error on the states
+    of the RBF replays (every 5th frame) and the share of those states outside the per-component
+    range of the training stretches (where the MLP extrapolates)."""
+    diffs, t_rbf, t_mlp, states = [], 0.0, 0.0, []
     m_rbf, m_mlp = scene.model(rbf), scene.model(mlp)
     for rec in scene.recordings_with_role("test"):
         try:
             state = initial_state(scene, m_rbf, rec)
             t = time.perf_counter()
-            Xr = simulate_recording(scene, m_rbf, rec, state=state)[1]
+            _, Xr, Vr = simulate_recording(scene, m_rbf, rec, state=state)
             t_rbf += time.perf_counter() - t
+            if X_train is not None:
+                states.append(correction_samples(m_rbf, rbf, Xr[::5], Vr[::5]))
         except RuntimeError:
             diffs.append(None)  # the RBF model itself fails on this recording
             continue
@@ -77,7 +84,19 @@ def forward_agreement(scene, rbf, mlp) -> dict:
             continue
         t_mlp += time.perf_counter() - t
         diffs.append(float(100 * np.linalg.norm(Xm - Xr, axis=2).max() / scene.object_size))
-    return {"sim_max_diff_pct_test": diffs, "sim_time_ratio_rbf_over_mlp": t_rbf / max(t_mlp, 1e-12)}
+    out = {"sim_max_diff_pct_test": diffs, "sim_time_ratio_rbf_over_mlp": t_rbf / max(t_mlp, 1e-12)}
+    if states:
+        out["test_states"] = []
+        lo, hi = X_train[:, :3].min(0), X_train[:, :3].max(0)
+        for Xs, Ys in states:
+            c = compare(None, mlp, Xs, Ys, repeats=0)
+            outside = np.any((Xs[:, :3] < lo) | (Xs[:, :3] > hi), axis=1)
+            out["test_states"].append({
+                "relative_error": c["relative_error"], "dalpha_relative_error": c.get("dalpha_relative_error"),
+                "share_outside_training_range": float(outside.mean()),
+                "relative_error_outside": compare(None, mlp, Xs[outside], Ys[outside], repeats=0)["relative_error"]
+                if outside.sum() > 1 else None})
+    return out
 
 
 def by_regime(mc, X, Y) -> dict:
@@ -110,6 +129,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--cases", default="bar_damping_2,bar_damping_1,dragon")
     ap.add_argument("--work", default="/tmp/matlearn_learning_bench")
+    ap.add_argument("--extra-seeds", default="1,2", type=lambda t: [int(v) for v in t.split(",") if v],
+                    help="further training seeds of the 6-wide net (seed spread)")
     args = ap.parse_args()
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(__file__).parent).stdout.strip()
@@ -145,7 +166,15 @@ def main():
         mc = mlp_correction(mlp)
         cmp = compare(rbf, mc, X, Y)
         held = compare(rbf, mc, Xh, Yh, repeats=0)
-        sim = forward_agreement(scene, rbf, mc)
+        sim = forward_agreement(scene, rbf, mc, X)
+        # Seed spread of the 6-wide net: sample error and simulation agreement are not monotone.
+        seeds = []
+        for sd in args.extra_seeds:
+            ms, _ = train_mlp(X, Y, seed=sd)
+            mcs = mlp_correction(ms)
+            seeds.append({"seed": sd, "heldout_relative_error": compare(None, mcs, Xh, Yh, repeats=0)["relative_error"],
+                          "sim_max_diff_pct_test": forward_agreement(scene, rbf, mcs)["sim_max_diff_pct_test"],
+                          "mlp_max_error_pct_test": test_errors(scene, mcs)})
         # Capacity check: the same pipeline with 16-wide hidden layers.
         wide, _ = train_mlp(X, Y, hidden=16)
         wc = mlp_correction(wide)
@@ -157,6 +186,7 @@ def main():
             "heldout_samples": held["samples"], "heldout_error_by_s1_regime": by_regime(mc, Xh, Yh),
             "target_std": [float(v) for v in Y.std(0)], **sim,
             "rbf_max_error_pct_test": test_errors(scene, rbf), "mlp_max_error_pct_test": test_errors(scene, mc),
+            "other_seeds": seeds,
             "hidden16_heldout_relative_error": wheld["relative_error"],
             "hidden16_heldout_dalpha_relative_error": wheld.get("dalpha_relative_error"),
             "hidden16_sim_max_diff_pct_test": forward_agreement(scene, rbf, wc)["sim_max_diff_pct_test"],
@@ -195,6 +225,10 @@ def main():
               f"{g('speed_ratio_rbf_over_mlp'):12.2f} {g('sim_time_ratio_rbf_over_mlp'):11.2f} "
               f"{f(r.get('rbf_max_error_pct_test')):>12s} {f(r.get('mlp_max_error_pct_test')):>12s} "
               f"{f(r.get('hidden16_sim_max_diff_pct_test')):>12s}")
+        for o in r.get("other_seeds", []):
+            print(f"{'  seed ' + str(o['seed']):14s} {'':8s} {o['heldout_relative_error']:8.3f} {'':7s} "
+                  f"{f(o['sim_max_diff_pct_test']):>12s} {'':12s} {'':11s} {'':12s} "
+                  f"{f(o['mlp_max_error_pct_test']):>12s}")
 
 
 if __name__ == "__main__":

@@ -177,12 +177,12 @@ def _rel(err, ref) -> float:
     return float(np.linalg.norm(err) / max(np.linalg.norm(ref - ref.mean(0)), 1e-300))
 
 
-def compare(rbf_correction, mlp_correction, X, Y, repeats: int = 5) -> dict:
+def compare(rbf_correction, mlp_correction, X, Y, repeats: int = 15) -> dict:
     """NN-vs-RBF agreement on samples X (k, 6) with RBF targets Y (k, 4) = (dPh, dalpha) (or
     (k, 3)): relative L2 errors ||pred - Y|| / ||Y - mean(Y)|| of the stress columns
     (`relative_error`) and of dalpha (`dalpha_relative_error`), max abs errors, and the evaluation
-    speed ratio (RBF time / MLP time, same inputs, same process, best of `repeats`; omitted when
-    repeats is 0 or rbf_correction None)."""
+    speed ratio (RBF time / MLP time, same inputs, same process, interleaved, best of `repeats`;
+    omitted when repeats is 0 or rbf_correction None)."""
     Fh, Fhd = np.ascontiguousarray(X[:, :3]), np.ascontiguousarray(X[:, 3:])
     r = mlp_correction.evaluate(Fh, Fhd)
     pred = np.asarray(r[0])
@@ -195,15 +195,14 @@ def compare(rbf_correction, mlp_correction, X, Y, repeats: int = 5) -> dict:
     if repeats < 1 or rbf_correction is None:
         return out
 
-    def best(fn):
-        ts = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            fn()
-            ts.append(time.perf_counter() - t)
-        return min(ts)
-
-    t_rbf = best(lambda: rbf_correction.evaluate(Fh, Fhd))
-    t_mlp = best(lambda: mlp_correction.evaluate(Fh, Fhd))
+    # Interleaved, best of `repeats` each: on a shared machine the load changes between calls.
+    t_rbf = t_mlp = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        rbf_correction.evaluate(Fh, Fhd)
+        t_rbf = min(t_rbf, time.perf_counter() - t)
+        t = time.perf_counter()
+        mlp_correction.evaluate(Fh, Fhd)
+        t_mlp = min(t_mlp, time.perf_counter() - t)
     out.update({"rbf_eval_s": t_rbf, "mlp_eval_s": t_mlp, "speed_ratio_rbf_over_mlp": t_rbf / t_mlp})
     return out
