@@ -203,3 +203,30 @@ def test_a_marker_off_the_surface_keeps_its_rest_offset():
     np.testing.assert_allclose(off[1], [0, 0, -0.0012], atol=1e-12)
     r = fitting.marker_residual(problem, None)
     np.testing.assert_allclose(r, 0, atol=1e-12)
+
+
+def test_debias_removes_the_discretisation_discrepancy_with_a_bounded_profiled_weight():
+    """fitting.debias: r + w b, w the least-squares weight of this residual clipped to the
+    plausible range; recordings without a measured discrepancy are left alone."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(3)
+    recs = [SimpleNamespace(), SimpleNamespace()]
+    b = [rng.standard_normal(30), rng.standard_normal(18)]
+    prob = SimpleNamespace(disc_bias={id(r): x for r, x in zip(recs, b)}, disc_weight_range=(0.55, 4 / 3))
+    B = np.concatenate(b)
+    effect = rng.standard_normal(48)
+    effect -= (effect @ B) / (B @ B) * B  # an effect orthogonal to the discrepancy
+    for w_true in (0.6, 1.0, 1.3):  # inside the range: removed exactly, the effect kept
+        np.testing.assert_allclose(fitting.debias(prob, effect - w_true * B, recs), effect, atol=1e-12)
+    # beyond the range the weight stops at its bound: the rest is not hidden
+    np.testing.assert_allclose(fitting.debias(prob, effect - 3.0 * B, recs), effect - (3.0 - 4 / 3) * B,
+                               atol=1e-12)
+    np.testing.assert_allclose(fitting.debias(prob, effect + B, recs), effect + 1.55 * B, atol=1e-12)
+    # one recording alone uses its own part; an unknown (held-out) recording is unchanged
+    r1 = rng.standard_normal(18)
+    w = np.clip(-(r1 @ b[1]) / (b[1] @ b[1]), 0.55, 4 / 3)
+    np.testing.assert_allclose(fitting.debias(prob, r1, recs[1:]), r1 + w * b[1], atol=1e-12)
+    other = SimpleNamespace()
+    np.testing.assert_array_equal(fitting.debias(prob, r1, [other]), r1)
+

@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import replay
 from .effects import build_model
-from .fitting import linear_fit, rest_offset
+from .fitting import debias, linear_fit, rest_offset
 from .problem import stack_residuals
 
 
@@ -52,7 +52,8 @@ def _rec_residual(problem, ctx, params, shift, late, rec):
         m2 = m1 if late[0] == 0 and late[1] == 0 else build_model(ctx, p2)
         return _simulate_split(problem, m1, m2, rec) + rest_offset(problem, rec)[None]
 
-    return stack_residuals([rec], predict, problem.object_size)
+    # the discretisation discrepancy removed per recording (as fitting.marker_residual does)
+    return debias(problem, stack_residuals([rec], predict, problem.object_size), [rec])
 
 
 def _residual(problem, ctx, params, x, recs, only=None, base=None):

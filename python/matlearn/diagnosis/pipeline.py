@@ -1,8 +1,10 @@
 """`diagnose(scene, out_dir)`: where the gap lies, which effect explains it, how far it shrinks.
 
 Steps (method.md section 9):
-1. nominal residual on the train recordings; the error floor (marker noise from the tracks, and
-   discretisation from re-simulating the nominal model on a once-refined mesh);
+1. nominal residual on the train recordings with the mesh's discretisation discrepancy removed
+   (the nominal model re-simulated on a once-refined mesh, its discrepancy subtracted with a
+   bounded weight profiled out of every fit: fitting.debias); the error floor (marker noise from
+   the tracks, what the correction leaves, and a conservative floor for significance);
 2. where: control forces of a marker-following constrained simulation -> element shares,
    regions, frames, regimes;
 3. which: sensitivities of every family (and of spatial patches, which locate a heterogeneity,
@@ -109,15 +111,23 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
 
     # ---- discretisation-compensated baseline and the floor
     sigma = P.noise_sigma() / P.object_size
-    base_ctx, rss_disc, theta_disc, (d_res, d_scale) = _discretisation(P, ctx, say)
+    base_ctx, (rss_disc, rss_disc_wide), theta_disc, (d_res, d_scale) = _discretisation(P, ctx, say)
     ctx = base_ctx
     r0 = fitting.residual_of(P, ctx, {})
     rss0 = float(r0 @ r0)
     n_eff = float(sum(len(r.times) for r in P.train))
     rss_noise = sigma**2 * len(r0)
-    rss_floor = rss_noise + rss_disc
-    say(f"train rss {rss0:.3e} (compensated baseline), floor {rss_floor:.3e} "
-        f"(noise {rss_noise:.3e}, discretisation {rss_disc:.3e}, stiffness offset {np.exp(theta_disc):.3f})")
+    # the noise rss is estimated: it is uncertain by its chi-square fluctuation (two deviations).
+    # rss_floor: what is left once the discretisation discrepancy is removed (claims are made
+    # above it); rss_wide: the conservative floor, as if the truth's discretisation error could
+    # lie anywhere up to (4/3)^2 |b|^2 in another spatial pattern (a gap is "significant", an
+    # effect claimed without the marginal checks, or "unexplained" said, only beyond it)
+    rss_noise_hi = rss_noise * (1.0 + 2.0 * np.sqrt(2.0 / max(len(r0), 1)))
+    rss_floor = rss_noise_hi + rss_disc
+    rss_wide = rss_noise_hi + rss_disc_wide
+    say(f"train rss {rss0:.3e} (discretisation-corrected baseline), floor {rss_floor:.3e} "
+        f"(noise {rss_noise:.3e}, discretisation {rss_disc:.3e}; conservative {rss_wide:.3e}), "
+        f"stiffness offset {np.exp(theta_disc):.3f}")
 
     # ---- which: sensitivities and cheap fits
     # Density is not simulated: every load in a recording is gravity (an acceleration) or a
@@ -187,12 +197,12 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     ranked = _rank(fits, cheap, order, n_eff, rss_floor, rss0, credit, tol, rss_noise)
 
     # ---- verdict
-    # above: beyond the floor (which already assumes the truth is the continuum); clear: beyond
-    # the floor's own uncertainty. Between the two an effect is claimed only when it explains
-    # most of the residual above the marker noise and its fit carries over to recordings it was
-    # not fitted on.
+    # above: beyond the floor left once the discretisation discrepancy is removed; significant:
+    # beyond the conservative floor's own uncertainty (GAP_FACTOR). In between an effect is
+    # claimed only when it explains most of the residual above the marker noise and its fit
+    # carries over to recordings it was not fitted on; "unexplained" needs a significant gap.
     above = rss0 > rss_floor
-    significant = rss0 > GAP_FACTOR * rss_floor
+    significant = rss0 > GAP_FACTOR * rss_wide
     verdict, selected = [], None
     cv = {}
 
@@ -224,12 +234,12 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             # most of what is not marker noise (no stateless effect can explain noise)
             share = (rss0 - fit.rss) / max(rss0 - rss_noise, 1e-300)
             ok = share >= EXPLAINED_MIN and carried
-            say(f"marginal gap ({rss0 / rss_floor:.2f} x floor): {best['name']} explains "
+            say(f"marginal gap ({rss0 / rss_wide:.2f} x conservative floor): {best['name']} explains "
                 f"{share:.2f} of the residual above the noise, leave-one-recording-out rss {loo}: "
                 f"claimed {ok}")
         if ok:
             verdict, selected = [best["name"]], fit
-            selected = _forward_select(P, ctx, selected, ranked, verdict, n_eff, rss_floor, rss0, say)
+            selected = _forward_select(P, ctx, selected, ranked, verdict, n_eff, rss_wide, rss0, say)
             # final refit of the verdict's parameters together (what the held-out gap uses)
             polished = fitting.refine(P, ctx, list(selected.params), selected.params, iterations=4,
                                       progress=say)
@@ -287,8 +297,9 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         "where": {"regions": regions, "frames": {"share_by_time": by_time}, "regime": regime},
         "effects": effects,
         "verdict": verdict,
-        "floor": {"rss_train": rss0, "rss_floor": rss_floor, "rss_noise": rss_noise,
-                  "rss_discretisation": rss_disc, "noise_sigma_m": sigma * P.object_size,
+        "floor": {"rss_train": rss0, "rss_floor": rss_wide, "rss_floor_debiased": rss_floor,
+                  "rss_noise": rss_noise, "rss_discretisation": rss_disc_wide,
+                  "rss_discretisation_debiased": rss_disc, "noise_sigma_m": sigma * P.object_size,
                   "significant": bool(significant)},
         "held_out": bool(P.test),
         "simulations": P.simulations,
@@ -431,20 +442,35 @@ def _cap_shares(regions):
             r["share"] /= tot
 
 
-def _discretisation(P, ctx, say):
-    """The mesh's discretisation bias and floor.
+# How far the truth lies beyond the once-refined mesh, as a multiple of the refined-minus-coarse
+# discrepancy (linear tets, error ~ h^2): 0.55 for a truth meshed 1.5x finer than the model, 4/3
+# for the continuum (Richardson).
+DISC_RANGE = (0.55, 4.0 / 3.0)
 
-    Coarse linear tets are too stiff. The nominal model is re-simulated on the once-refined
-    mesh and the coarse model's stiffness offset theta_r that best matches it is fitted. How
-    far the recordings' "truth" lies beyond the refined mesh is unknown: from a mesh 1.5x finer
-    than the model's (offset ~0.55 theta_r with error ~ h^2) to the continuum (4/3 theta_r). A
-    stiffness offset in that interval is therefore not evidence of any effect: the baseline every
-    family is fitted on top of takes the data's best offset clipped to it. The floor is what the
-    offset cannot absorb, scaled by (4/3)^2, plus the marker noise (added by the caller).
-    Returns (baseline context, floor rss, offset theta, (d, scale)): d the coarse-minus-refined
-    marker residual left after the offset on the first train recording (the rows of that
-    recording in the stacked train residual), scale the factor that turns its rss into floor
-    units (for ranking.discretisation_credit)."""
+
+def _discretisation(P, ctx, say):
+    """The mesh's discretisation bias, its removal, and the floor it leaves.
+
+    Coarse linear tets are too stiff. The nominal model is re-simulated on the once-refined mesh
+    (every train recording) and the coarse model's stiffness offset theta_r that best matches it
+    is fitted (first recording). How far the recordings' "truth" lies beyond the refined mesh is
+    unknown: from a mesh 1.5x finer than the model's to the continuum (DISC_RANGE times the
+    refined-minus-coarse discrepancy). Two bounded nuisances remove it:
+    - the baseline every family is fitted on top of takes the data's best stiffness offset,
+      clipped to DISC_RANGE * theta_r;
+    - what the offset leaves of the refined-minus-coarse marker discrepancy, b, is added to every
+      train prediction with a weight profiled out of each fit inside DISC_RANGE
+      (fitting.debias: multi-fidelity additive correction), so the data's discretisation error
+      is removed instead of only floored.
+    The floor is what the weight's uncertainty (half its range) leaves of b; the conservative
+    floor assumes a truth as far as the continuum whose error need not follow b's spatial
+    pattern at all: (4/3)^2 |b|^2 (a truth meshed in another pattern, or a model only 1-2 tets
+    across, leaves up to ~2 |b|^2 after the correction; a well-resolved one ~0.02 |b|^2). The
+    marker noise is added by the caller.
+    Returns (baseline context, (floor rss, conservative floor rss), offset theta, (b, scale)):
+    b the stacked discrepancy over all train recordings and scale the factor that turns an rss
+    of b into floor units (for ranking.discretisation_credit: what a family can gain by
+    mimicking the discrepancy the correction leaves)."""
     from dataclasses import replace
 
     from .problem import Problem as _Problem
@@ -454,29 +480,37 @@ def _discretisation(P, ctx, say):
     fine.scene = P.refined_scene()
     fine._emb = {}
     fine._rest_offsets = {}
+    fine.disc_bias = {}
     fine.simulations = 0
-    # the refined mesh costs ~10x: one train recording measures the offset
-    recs = P.train[:1]
+    P.disc_bias = {}
+    recs = P.train
     rc = fitting.marker_residual(P, P.scene.model(), recs)
     rf = fitting.marker_residual(fine, fine.scene.model(), recs)
     P.simulations += fine.simulations
-    fit = fitting.refine(P, ctx, ["stiffness_scale"], {}, r_start=rc - rf, iterations=2,
-                         target=rf, recs=recs)
-    # the floor counts all train recordings: scale by their share of the samples
-    n_all = sum(int(r.seen.sum()) for r in P.train)
-    share = n_all / max(sum(int(r.seen.sum()) for r in recs), 1)
+    first = slice(0, 3 * int(recs[0].seen.sum()))  # the offset is measured on one recording
+    fit = fitting.refine(P, ctx, ["stiffness_scale"], {}, r_start=(rc - rf)[first], iterations=2,
+                         target=rf[first], recs=recs[:1])
     theta_r = float(fit.params["stiffness_scale"][0])
-    d_res = fitting.residual_of(P, ctx, fit.params, recs) - rf
-    lo, hi = sorted((0.55 * theta_r, 4.0 / 3.0 * theta_r))
+    b = rf - fitting.residual_of(P, ctx, fit.params, recs)
+    lo, hi = sorted((DISC_RANGE[0] * theta_r, DISC_RANGE[1] * theta_r))
+    usable = bool(np.all(np.isfinite(b))) and float(np.abs(b).max(initial=0.0)) < 0.5
+    if usable:  # (a failed simulation's constant residual is not a discrepancy)
+        sizes = np.cumsum([3 * int(r.seen.sum()) for r in recs])[:-1]
+        P.disc_bias = {id(r): part for r, part in zip(recs, np.split(b, sizes))}
+        P.disc_weight_range = DISC_RANGE
+    else:
+        b = np.zeros_like(b)
     data = fitting.refine(P, ctx, ["stiffness_scale"], {"stiffness_scale": [theta_r]}, iterations=2)
     theta = float(np.clip(data.params["stiffness_scale"][0], lo, hi))
-    rss_disc = (4.0 / 3.0) ** 2 * fit.rss * share
+    scale = (0.5 * (DISC_RANGE[1] - DISC_RANGE[0])) ** 2
+    rss_disc = scale * float(b @ b)
+    rss_wide = DISC_RANGE[1] ** 2 * float(b @ b)
     mat = ctx.material
     E = np.asarray(mat.youngs_modulus, float) * np.exp(theta)
     new = replace(ctx, material=replace(mat, youngs_modulus=E), offset_applied=theta,
                   offset_reference=theta_r, offset_range=(lo, hi))
     new.clamp_layer = ctx.clamp_layer
     say(f"discretisation: coarse-vs-refined rss {float((rc - rf) @ (rc - rf)):.3e}, after "
-        f"stiffness offset {fit.rss:.3e}; offset range [{np.exp(lo):.3f}, {np.exp(hi):.3f}], "
-        f"data {np.exp(data.params['stiffness_scale'][0]):.3f}")
-    return new, float(rss_disc), theta, (d_res, (4.0 / 3.0) ** 2 * share)
+        f"stiffness offset {float(b @ b):.3e} (removed with a weight in {DISC_RANGE}); offset "
+        f"range [{np.exp(lo):.3f}, {np.exp(hi):.3f}], data {np.exp(data.params['stiffness_scale'][0]):.3f}")
+    return new, (float(rss_disc), float(rss_wide)), theta, (b, scale)

@@ -39,6 +39,9 @@ class Problem:
         self._probe = {}  # id(scene) -> (scene, x, v): the fingerprint state
         self._memo = {}  # (id(scene), id(rec), newton, fingerprint) -> (rec, scene, markers)
         self.memo_hits = 0
+        # the mesh's discretisation discrepancy removed from train residuals (fitting.debias)
+        self.disc_bias = {}
+        self.disc_weight_range = (0.0, 0.0)
 
     @property
     def mesh(self):
