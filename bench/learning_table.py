@@ -8,7 +8,7 @@ Writes bench/results/learning_table.json (keys of issue 3) and prints a table be
 paper's numbers. Each case's result is written as soon as it finishes.
 
 Usage: python bench/learning_table.py [--cases turtle,dragon,...] [--only NAME] [--iterations N]
-[--out FILE] [--work DIR]
+[--start baseline|nominal] [--out FILE] [--work DIR]
 """
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")  # shared, oversubscribed co
 
 import argparse
 import json
+import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -27,31 +28,39 @@ import numpy as np
 from matlearn import cases
 from matlearn.learning import LearnOptions, learn
 from matlearn.learning.baseline import baseline_test_errors, fit_parameters
+from matlearn.learning.start import STARTS, start_scene
 from matlearn.replay import score
 from matlearn.scene import load_scene
 
 RESULTS = Path(__file__).parent / "results" / "learning_table.json"
 
 
-def run_case(spec, work: Path, iterations: int, baseline_evals: int) -> dict:
+def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str) -> dict:
     path = cases.build(spec, work / "cases")
     scene = load_scene(path)
     test_recs = scene.recordings_with_role("test")
     frames = int(sum(len(r.times) for r in scene.recordings_with_role("train")))
     nominal = [r["max_error_pct"] for r in score(scene, scene.model(), "test")["recordings"]]
-    t0 = time.time()
-    opts = LearnOptions(iterations=iterations, **spec.learn)
-    res = learn(scene, work / "runs" / spec.name, opts, log=lambda *a: print("   ", *a, flush=True))
-    wall = time.time() - t0
-    final_test = res["final"]["test"]  # scored inside the loop; None: a test recording diverged
-    learned = final_test["per_recording_max_pct"] if final_test else [float("nan")] * len(test_recs)
     tb = time.time()
     fit = fit_parameters(scene, "corotated", max_evaluations=baseline_evals)
+    base_wall = time.time() - tb
     try:
         base = baseline_test_errors(scene, fit)
     except RuntimeError as err:  # the fitted parameters cannot replay a test recording
         base = [float("nan")] * len(test_recs)
         print("    baseline replay failed:", err)
+    t0 = time.time()
+    opts = LearnOptions(iterations=iterations, **spec.learn)
+    run_dir = work / "runs" / spec.name
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    log = lambda *a: print("   ", *a, flush=True)  # noqa: E731
+    lscene, sinfo = start_scene(scene, start, run_dir, warm=fit, log=log)
+    res = learn(lscene, run_dir, opts, log=log)
+    # wall_s: the start fit (3 parameters, start=baseline) and the learning loop
+    wall = time.time() - t0
+    final_test = res["final"]["test"]  # scored inside the loop; None: a test recording diverged
+    learned = final_test["per_recording_max_pct"] if final_test else [float("nan")] * len(test_recs)
     return {
         "case": spec.name,
         "tets": int(scene.mesh.num_tets),
@@ -67,7 +76,10 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int) -> dict:
                                 "poisson_ratio": float(np.mean(fit["material"].poisson_ratio)),
                                 "alpha_mass": fit["damping"].alpha_mass,
                                 "alpha_stiffness": fit["damping"].alpha_stiffness,
-                                "evaluations": fit["evaluations"], "wall_s": time.time() - tb},
+                                "evaluations": fit["evaluations"], "wall_s": base_wall},
+        "start": start, "start_parameters": {k: sinfo.get(k) for k in ("material", "damping", "evaluations")},
+        "start_train_max_error_pct": res["nominal"]["train"]["max_error_pct"],
+        "learned_train_max_error_pct": res["final"]["train"]["max_error_pct"],
         "test_recordings": len(test_recs),
         "paper_max_error_pct": cases.PAPER_ERROR.get(spec.name),
         "target_max_error_pct": cases.TARGET_ERROR.get(spec.name),
@@ -100,6 +112,8 @@ def main():
     ap.add_argument("--only", default=None, help="run just this case (same as --cases NAME)")
     ap.add_argument("--iterations", type=int, default=8)
     ap.add_argument("--baseline-evals", type=int, default=20)
+    ap.add_argument("--start", choices=STARTS, default="baseline",
+                    help="learning starts from the nominal parameters or the baseline fit (default)")
     ap.add_argument("--work", default="/tmp/matlearn_learning_bench")
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--merge", nargs="+", default=None,
@@ -136,7 +150,7 @@ def main():
     work = Path(args.work)
     for name in names:
         print(f"== {name}", flush=True)
-        row = run_case(byname[name](), work, args.iterations, args.baseline_evals)
+        row = run_case(byname[name](), work, args.iterations, args.baseline_evals, args.start)
         row.update({k: doc[k] for k in ("code_commit", "loop_commit", "uncommitted_changes")})
         doc["cases"] = [c for c in doc["cases"] if c["case"] != name] + [row]
         out.parent.mkdir(parents=True, exist_ok=True)

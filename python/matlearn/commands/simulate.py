@@ -13,17 +13,18 @@ from ..recording import Recording, load_recording, save_recording
 from ..scene import load_scene, vertices_in_box
 
 
-def load_correction(run_dir):
-    """The learned correction of a `matlearn learn` run directory (matlearn.learning.load_model)."""
+def load_correction(run_dir, scene):
+    """The learned model of a `matlearn learn` run directory on `scene` (its correction, and the
+    fitted base parameters when the run started from the baseline: matlearn.learning.io.scene_model)."""
     if not Path(run_dir).is_dir():
         raise FileNotFoundError(f"model run directory not found: {run_dir}")
     try:
-        from ..learning import load_model
+        from ..learning.io import scene_model
     except ImportError as err:
         raise ValueError(
             f"--model needs matlearn.learning.load_model, which is not available ({err})"
         ) from err
-    return load_model(run_dir)
+    return scene_model(scene, run_dir)
 
 
 def load_forces(scene, model, force, box) -> np.ndarray:
@@ -80,8 +81,7 @@ def _marker_points(scene, args) -> np.ndarray:
 
 def run(args) -> int:
     scene = load_scene(args.scene)
-    correction = load_correction(args.model) if args.model else None
-    model = correction if hasattr(correction, "forces") else scene.model(correction)
+    model = load_correction(args.model, scene) if args.model else scene.model()
     bar = ProgressBar("simulate", enabled=not args.quiet)
     points = _marker_points(scene, args)  # before simulating: bad marker input fails fast
     if args.replay is not None:

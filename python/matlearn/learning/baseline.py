@@ -13,14 +13,18 @@ from ..materials import Damping, Material
 from ..replay import interpolate_frames, score, simulate_recording
 
 
-def _unpack(p, base: Material, law: str):
-    E, nu, aM, aK = np.exp(p[0]), p[1], np.exp(p[2]), np.exp(p[3])
+def _unpack(p, base: Material, law: str, alpha_mass: float | None = None):
+    E, nu, aK = np.exp(p[0]), p[1], np.exp(p[3])
+    aM = np.exp(p[2]) if alpha_mass is None else alpha_mass
     mat = Material(law, float(E), float(nu), base.density)
     return mat, Damping(float(aM), float(aK))
 
 
-def fit_parameters(scene, law: str = "corotated", max_evaluations: int = 40, log=None) -> dict:
-    """Returns dict(material, damping, train_max_error_pct, evaluations)."""
+def fit_parameters(scene, law: str = "corotated", max_evaluations: int = 40, log=None,
+                   alpha_mass: float | None = None, start: dict | None = None) -> dict:
+    """Returns dict(material, damping, train_rms_pct, evaluations). alpha_mass: None (fitted)
+    or a fixed value (1/s): the 3-parameter fit of E, nu, alpha_K that the learner's own model
+    space contains (learning/start.py); start: a previous fit's result to start from."""
     recs = [r for r in scene.recordings_with_role("train") if r.num_markers > 0]
     if not recs:
         raise ValueError("baseline: the scene has no train recording with markers")
@@ -32,12 +36,26 @@ def fit_parameters(scene, law: str = "corotated", max_evaluations: int = 40, log
                    np.log(max(d0.alpha_mass, 1e-3)), np.log(max(d0.alpha_stiffness, 1e-4))])
     lo = np.array([p0[0] - 5, 0.0, np.log(1e-6), np.log(1e-7)])
     hi = np.array([p0[0] + 5, 0.49, np.log(1e3), np.log(1.0)])
+    if start is not None:
+        p0 = np.array([np.log(float(np.mean(start["material"].youngs_modulus))),
+                       float(np.mean(start["material"].poisson_ratio)),
+                       np.log(max(start["damping"].alpha_mass, 1e-6)),
+                       np.log(max(start["damping"].alpha_stiffness, 1e-7))])
+    free = np.array([True, True, alpha_mass is None, True])
+    if alpha_mass is not None:  # exp(p[2]) is replaced by the fixed value in _unpack
+        p0[2] = np.log(max(alpha_mass, 1e-300))
     count = [0]
     big = 100.0  # % of size per sample when a simulation fails
 
-    def residual(p):
+    def full(q):
+        p = p0.copy()
+        p[free] = q
+        return p
+
+    def residual(q):
         count[0] += 1
-        mat, damp = _unpack(p, m0, law)
+        p = full(q)
+        mat, damp = _unpack(p, m0, law, alpha_mass)
         model = scene.model(material=mat, damping=damp)
         out = []
         for rec, emb in zip(recs, embs):
@@ -54,9 +72,10 @@ def fit_parameters(scene, law: str = "corotated", max_evaluations: int = 40, log
                 f"aM={np.exp(p[2]):.3g} aK={np.exp(p[3]):.3g} rms={np.sqrt(np.mean(r**2)):.3f}%")
         return r
 
-    sol = least_squares(residual, np.clip(p0, lo + 1e-9, hi - 1e-9), bounds=(lo, hi),
-                        max_nfev=max_evaluations, diff_step=1e-3, x_scale=[1.0, 0.05, 1.0, 1.0])
-    mat, damp = _unpack(sol.x, m0, law)
+    sol = least_squares(residual, np.clip(p0, lo + 1e-9, hi - 1e-9)[free], bounds=(lo[free], hi[free]),
+                        max_nfev=max_evaluations, diff_step=1e-3,
+                        x_scale=np.array([1.0, 0.05, 1.0, 1.0])[free])
+    mat, damp = _unpack(full(sol.x), m0, law, alpha_mass)
     return {"material": mat, "damping": damp, "evaluations": count[0],
             "train_rms_pct": float(np.sqrt(np.mean(sol.fun**2)))}
 

@@ -2,7 +2,10 @@
 
 `load_model(RUN)` returns a `_core.correction.*` object ready for `Model.correction` (used by
 `matlearn simulate --model RUN`). A run holds the RBF correction and, after distillation, the
-MLP; `model.json["use"]` says which one `load_model` returns by default.
+MLP; `model.json["use"]` says which one `load_model` returns by default. A run that started
+from the baseline fit (learning/start.py) also stores the fitted material and damping the
+correction was learned on (`base_material` / `base_damping` in model.json);
+`scene_model(scene, RUN)` builds the complete model (used by `matlearn simulate --model RUN`).
 """
 from __future__ import annotations
 
@@ -78,3 +81,16 @@ def load_model(run_dir, kind: str | None = None):
     if kind == "mlp":
         return mlp_correction(load_mlp(run))
     raise ValueError(f"kind must be 'rbf' or 'mlp', got {kind!r}")
+
+
+def scene_model(scene, run_dir, kind: str | None = None):
+    """The learned model of run `run_dir` on `scene`: the scene's nominal material and damping
+    (or the run's `base_material` / `base_damping`, when it started from the baseline fit) plus
+    the learned correction."""
+    from .start import damping_from_dict, material_from_dict
+
+    correction = load_model(run_dir, kind)
+    info = json.loads((Path(run_dir) / MODEL_JSON).read_text())
+    mat = material_from_dict(info["base_material"]) if info.get("base_material") else None
+    damp = damping_from_dict(info["base_damping"]) if info.get("base_damping") else None
+    return scene.model(correction, material=mat, damping=damp)

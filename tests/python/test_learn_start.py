@@ -1,0 +1,74 @@
+"""Learning started from the baseline fit (learning/start.py: E, nu, alpha_K fitted, alpha_M held): iteration 0 is exactly the
+baseline, the learned train error never ends above it, and the saved model carries the fitted
+parameters so `matlearn simulate --model RUN` reproduces the learned model."""
+import json
+
+import numpy as np
+import pytest
+
+from matlearn import cli
+from matlearn.learning import LearnOptions, learn, load_model
+from matlearn.learning import start as start_mod
+from matlearn.learning.io import scene_model
+from matlearn.recording import load_recording
+from matlearn.replay import score
+from matlearn.scene import load_scene
+
+from learning_cases import small_bar_case
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    return small_bar_case(tmp_path_factory.mktemp("cases"))
+
+
+def test_learning_from_the_baseline_starts_at_it_and_never_ends_above_it(case, tmp_path, monkeypatch):
+    sc = load_scene(case)
+    lscene, info = start_mod.baseline_start(sc, tmp_path / "run", max_evaluations=8)
+    E0, E1 = float(np.mean(sc.material.youngs_modulus)), info["material"]["youngs_modulus"]
+    assert abs(E1 / E0 - 1) > 0.05  # the fit moved E (truth 2e5, nominal 3.5e5)
+    # alpha_M is held at the nominal value (the learner has no mass-damping term to undo it)
+    assert lscene.damping.alpha_mass == sc.damping.alpha_mass
+    base_train = score(sc, sc.model(material=lscene.material, damping=lscene.damping), "train")
+    nominal_train = score(sc, sc.model(), "train")
+    assert base_train["max_error_pct"] < nominal_train["max_error_pct"]
+    res = learn(lscene, tmp_path / "run", LearnOptions(iterations=2, modes=12, centers=12), log=None)
+    start_train = res["nominal"]["train"]["max_error_pct"]
+    # Iteration 0 is the baseline model itself (same simulation as the baseline's scoring).
+    assert start_train == pytest.approx(base_train["max_error_pct"], rel=1e-6)
+    assert res["final"]["train"]["max_error_pct"] <= start_train
+    print("train nominal", nominal_train["max_error_pct"], "baseline", start_train,
+          "learned", res["final"]["train"]["max_error_pct"])
+    # The fit is cached in RUN/start.json: a resumed run does not fit again.
+    monkeypatch.setattr(start_mod, "fit_parameters", lambda *a, **k: pytest.fail("fitted again"))
+    again, info2 = start_mod.baseline_start(sc, tmp_path / "run")
+    assert info2["material"] == info["material"] and info2["damping"] == info["damping"]
+    assert again.damping.alpha_stiffness == lscene.damping.alpha_stiffness
+
+
+def test_cli_baseline_start_saves_the_fitted_parameters_and_simulate_reproduces_it(case, tmp_path):
+    out = tmp_path / "run"
+    rc = cli.main(["learn", str(case), "--out", str(out), "--iterations", "1", "--modes", "10",
+                   "--centers", "8", "--no-distill", "--quiet", "--start", "baseline"])
+    assert rc == 0
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["start"] == "baseline"
+    sc = load_scene(case)
+    assert meta["base_material"]["youngs_modulus"] != pytest.approx(float(np.mean(sc.material.youngs_modulus)))
+    full = scene_model(sc, out)
+    partial = sc.model(load_model(out))  # the correction on the scene's nominal parameters
+    idx = [p for p, _ in sc.recordings].index(sc.recording_paths("test")[0])
+    rec_out = tmp_path / "replay.npz"
+    assert cli.main(["simulate", str(case), "--model", str(out), "--replay", str(idx),
+                     "--out", str(rec_out), "--quiet"]) == 0
+    sim = load_recording(rec_out)
+    learned = score(sc, full, "test")["recordings"][0]["max_error_pct"]
+    summary = json.loads((out / "summary.json").read_text())
+    best = summary["final"]["test"]["max_error_pct"]
+    assert learned == pytest.approx(best, rel=1e-6)
+    # simulate --model used the fitted parameters: its markers are those of `full`, not `partial`
+    test_rec = load_recording(sc.recording_paths("test")[0])
+    err = np.linalg.norm(sim.markers - test_rec.markers, axis=2).max() / sc.object_size * 100
+    assert err == pytest.approx(learned, rel=1e-3, abs=1e-4)
+    wrong = score(sc, partial, "test")["recordings"][0]["max_error_pct"]
+    assert abs(wrong - learned) > 0.1 * learned
