@@ -159,6 +159,11 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                                            j_offset=J["stiffness_scale"][:, 0],
                                            region=(Jp, fitting.locate_region))
     credit["density"] = credit["stiffness_scale"]
+    # A located region chooses where it acts from the data: it can sit wherever the truth's mesh
+    # error is left after the correction, whose size only the conservative floor bounds (a
+    # truth in another pattern, a model 1-2 tets across: up to ~2 |b|^2). Its credit is scaled
+    # like that floor; the other families act everywhere or at a fixed place (the clamp).
+    credit["heterogeneity"] *= (rss_disc_wide / rss_disc) if rss_disc > 0 else 1.0
     tol = {n: ranking.noise_tolerance(rss_noise, len(r0), _dof(n)) for n in cheap}
     say("discretisation credit: " + ", ".join(f"{n} {c:.2e}" for n, c in credit.items()))
     order = sorted(cheap, key=lambda n: fitting.score(cheap[n][1], _dof(n), n_eff, rss_floor))
