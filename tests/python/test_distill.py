@@ -205,6 +205,31 @@ def test_distilled_mlp_replays_rbf_model_with_strain_dependent_damping():
     assert d_nod > 10 * d_mlp, (d_mlp, d_nod)
 
 
+@pytest.mark.parametrize("c", [0.01, -0.5])
+def test_mlp_dalpha_enters_the_model_exactly_as_the_rbf_damping_part(c):
+    # An MLP whose outputs are dPh = 0, dalpha = c and an RBF with only alpha_bias = c give the
+    # same forces, stiffness and damping matrices (c = -0.5: clamped to alpha_K = 0 in both), and
+    # equal a nominal model with alpha_K = max(0.004 + c, 0).
+    sc = _scene(Damping(0.0, 0.004))
+    _, norm, ex = _random_net(4, 6, False, seed=5)
+    W2, b2 = np.zeros_like(ex["layers"][2][0]), np.zeros_like(ex["layers"][2][1])
+    mlp = _core.correction.MlpCorrection(ex["layers"][:2] + [(W2, b2)], norm["in_mean"], norm["in_std"],
+                                         np.r_[0, 0, 0, c], np.ones(4))
+    rbf = RbfParams(np.ones((1, 3)), np.zeros((1, 3)), alpha_weights=np.zeros(1), alpha_bias=c).correction()
+    ref = sc.model(damping=Damping(0.0, max(0.004 + c, 0.0)))
+    X, Vel = _release(sc, sc.model(), [0, 1.0, 0.4], 20)
+    x, v = X[-1], Vel[-1]
+    models = [sc.model(mlp), sc.model(rbf), ref]
+    f = [np.asarray(m.forces(x, v)) for m in models]
+    D = [m.damping_matrix(x, v).toarray() for m in models]
+    K = [m.stiffness(x, v).toarray() for m in models]
+    assert np.abs(f[0] - np.asarray(sc.model().forces(x, v))).max() > 1e-6 * np.abs(f[0]).max()
+    for i in (1, 2):
+        np.testing.assert_allclose(f[0], f[i], rtol=1e-12, atol=1e-12 * np.abs(f[i]).max())
+        np.testing.assert_allclose(D[0], D[i], rtol=1e-12, atol=1e-12 * np.abs(D[i]).max())
+        np.testing.assert_allclose(K[0], K[i], rtol=1e-12, atol=1e-12 * np.abs(K[i]).max())
+
+
 def _energy(sc, model, x, v):
     mu, lam = sc.material.lame(sc.mesh.num_tets)
     Fh = np.asarray(model.principal_kinematics(x, v)[0])
