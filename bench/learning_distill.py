@@ -1,9 +1,10 @@
 """Benchmark: distillation of a learned RBF correction into the 6-6-6-4 MLP (method.md 6).
 
 Uses the runs of bench/learning_table.py (--work: the folder holding cases/ and runs/): for each
-given case the RBF of the iterate with the lowest train error (the rule of Learner.finish, read
-from the run's checkpoint directly, so a run written by older code can still be distilled; its
-code fingerprint is reported), samples (Fh, Fhdot) -> (dPh, dalpha) from simulations with the RBF
+given case (on the run's base model: the case's nominal one, or the fitted parameters of a
+`--start baseline` run) the RBF of the iterate with the lowest train error (the rule of
+Learner.finish, read from the run's checkpoint directly, so a run written by older code can
+still be distilled; its code fingerprint is reported), samples (Fh, Fhdot) -> (dPh, dalpha) from simulations with the RBF
 model (train motions from 0.5x, 0.75x, 1x their initial poses: the range the simulations visit),
 trains the MLP (stretch-rate inputs masked, learning/distill.py), and reports
   * NN-vs-RBF agreement (relative L2 error of the stress outputs and of dalpha) on the training
@@ -36,6 +37,7 @@ import numpy as np
 from matlearn.learning.distill import compare, correction_samples, simulation_samples, train_mlp
 from matlearn.learning.fit import RbfParams
 from matlearn.learning.io import mlp_correction
+from matlearn.learning.start import START_JSON, damping_from_dict, material_from_dict, with_parameters
 from matlearn.replay import initial_state, score, simulate_recording
 from matlearn.scene import load_scene
 
@@ -55,6 +57,17 @@ def best_rbf(run: Path) -> tuple[RbfParams | None, dict, str | None]:
         return None, best, doc.get("code")
     with np.load(run / "checkpoint" / f"iter_{k - 1:03d}.npz") as z:
         return RbfParams.from_arrays(z), best, doc.get("code")
+
+
+def run_scene(scene, run: Path):
+    """The scene the run learned on: the case's nominal model, or the fitted base parameters a
+    `--start baseline` run cached in RUN/start.json (learning/start.py)."""
+    f = run / START_JSON
+    if f.exists():
+        doc = json.loads(f.read_text())
+        if doc.get("start") == "baseline":
+            return with_parameters(scene, material_from_dict(doc["material"]), damping_from_dict(doc["damping"])), "baseline"
+    return scene, "nominal"
 
 
 def forward_agreement(scene, rbf, mlp, X_train=None) -> dict:
@@ -148,6 +161,7 @@ def main():
         t0 = time.time()
         scene = load_scene(Path(args.work) / "cases" / name / "scene.toml")
         params, best, code = best_rbf(Path(args.work) / "runs" / name)
+        scene, start = run_scene(scene, Path(args.work) / "runs" / name)
         failed_init = []
         if params is not None:  # (simulation_samples starts these from the nominal's held pose)
             for i, rec in enumerate(scene.recordings_with_role("train")):
@@ -192,7 +206,7 @@ def main():
             "hidden16_sim_max_diff_pct_test": forward_agreement(scene, rbf, wc)["sim_max_diff_pct_test"],
             "hidden16_mlp_max_error_pct_test": test_errors(scene, wc),
             "train_recordings_failed_with_rbf": failed_init,
-            "rbf_centers": int(len(params.centers)), "rbf_damping": bool(len(params.alpha_weights)),
+            "start": start, "rbf_centers": int(len(params.centers)), "rbf_damping": bool(len(params.alpha_weights)),
             "rbf_source": f"{args.work}/runs/{name}, iteration {best['iteration']} (learning_table's "
                           f"test {best['test']['per_recording_max_pct']}), code fingerprint {code}",
             "code_commit": commit, "uncommitted_changes": bool(dirty),
