@@ -91,10 +91,11 @@ def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluation
     return with_parameters(scene, fit["material"], fit["damping"]), info
 
 
-def start_scene(scene, start: str, run_dir=None, warm: dict | None = None, log=None):
+def start_scene(scene, start: str, run_dir=None, warm: dict | None = None, max_evaluations: int = 20,
+                log=None):
     """The scene the loop learns on for `start` ("nominal" or "baseline") and the start info."""
     if start not in STARTS:
         raise ValueError(f"start must be one of {STARTS}, got {start!r}")
     if start == "nominal":
         return scene, {"start": "nominal"}
-    return baseline_start(scene, run_dir, warm=warm, log=log)
+    return baseline_start(scene, run_dir, warm=warm, max_evaluations=max_evaluations, log=log)
