@@ -33,6 +33,7 @@ void Integrator::set_state(const MatX3& x, const MatX3& v) {
   model_->check_state(v, "v");
   x_ = x;
   v_ = v;
+  has_prev_v_ = false;
 }
 
 void Integrator::set_prescribed(const VecXi& vertices) {
@@ -40,6 +41,7 @@ void Integrator::set_prescribed(const VecXi& vertices) {
   if (vertices.size() && (vertices.minCoeff() < 0 || vertices.maxCoeff() >= nv))
     throw InvalidInput("prescribed vertex index out of range [0, " + std::to_string(nv) + ")");
   prescribed_ = vertices;
+  has_prev_v_ = false;
   rebuild_pattern();
 }
 
@@ -55,6 +57,7 @@ void Integrator::rebuild_pattern() {
   assembler_ = std::make_unique<fem::SparseAssembler>(model_->mesh().tets(), dof_map_, n_free_, true);
   A_ = assembler_->pattern();
   solver_.analyze(A_);
+  factor_valid_ = false;
 }
 
 void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
@@ -68,7 +71,11 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
   }
   const VecX& mass = model_->dof_mass();
   const MatX3 x0 = x_, v0 = v_;
+  // Initial guess: constant acceleration from the last step (v_n + (v_n - v_{n-1})), which
+  // starts the iteration O(h^2) instead of O(h) from the answer; the fixed point and stopping
+  // test are unchanged. Only when the last step led to this state (not after set_state).
   MatX3 v = v_;
+  if (opts_.extrapolate && opts_.max_newton > 1 && has_prev_v_) v += v_ - prev_v_;
   for (int i = 0; i < fixed_.size(); ++i) v.row(fixed_[i]).setZero();
   for (int i = 0; i < prescribed_.size(); ++i)
     v.row(prescribed_[i]) = ((*targets).row(i) - x0.row(prescribed_[i])) / h_;
@@ -78,16 +85,24 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
   const double v_ref = 1e-6 * size_ / h_;
   last_iters_ = 0;
   timings_ = StepTimings{};
-  for (int it = 0; it < opts_.max_newton; ++it) {
+  // Without a correction the element damping matrix is alpha_K,e K_e + c_e I (Rayleigh on the
+  // same projected tangent), so the system matrix is assembled from K alone with per-element
+  // coefficients: half the element data to compute, store and scatter.
+  const bool rayleigh_only = model_->correction() == nullptr;
+  const bool reuse = opts_.reuse_factorization && opts_.max_newton > 1;
+  // Chord iterations with the last factorised matrix cost a force evaluation and one
+  // triangular solve; the tangent is evaluated and refactorised only when they stop
+  // contracting fast enough. Bounded: at most max_newton refactorisations and 4 max_newton
+  // iterations in all.
+  bool refresh = !(reuse && factor_valid_);
+  int fresh = 0;
+  double prev_dv = 0.0;
+  for (int it = 0; it < 4 * opts_.max_newton; ++it) {
     auto t0 = Clock::now();
     MatX3 x = x0 + h_ * v;
-    // Without a correction the element damping matrix is alpha_K,e K_e + c_e I (Rayleigh on the
-    // same projected tangent), so the system matrix is assembled from K alone with per-element
-    // coefficients: half the element data to compute, store and scatter.
-    const bool rayleigh_only = model_->correction() == nullptr;
+    const int flags = fem::kForce | (refresh ? fem::kStiffness | (rayleigh_only ? 0 : fem::kDamping) : 0);
     try {
-      model_->evaluate(x, v, fem::kForce | fem::kStiffness | (rayleigh_only ? 0 : fem::kDamping),
-                       true, st);
+      model_->evaluate(x, v, flags, true, st);
     } catch (const NumericalError& err) {  // e.g. a correction returning NaN: say when
       std::ostringstream os;
       os << "step " << steps_ << ", Newton iteration " << it << ": " << err.what();
@@ -100,18 +115,23 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
     const auto v0d = as_dofs(v0);
     for (int d = 0; d < 3 * nv; ++d)
       if (dof_map_[d] >= 0) g[dof_map_[d]] = mass[d] * (vd[d] - v0d[d]) - h_ * (f[d] + fconst[d]);
-    t0 = Clock::now();
-    assemble_step_matrix(*model_, st, h_, mass, rayleigh_only, *assembler_, coeff_, diag_, A_);
-    timings_.assemble_s += seconds_since(t0);
-    t0 = Clock::now();
-    try {
-      solver_.factorize(A_);
-    } catch (const NumericalError& err) {
-      std::ostringstream os;
-      os << "step " << steps_ << ", Newton iteration " << it << ": " << err.what();
-      throw NumericalError(os.str());
+    if (refresh) {
+      t0 = Clock::now();
+      assemble_step_matrix(*model_, st, h_, mass, rayleigh_only, *assembler_, coeff_, diag_, A_);
+      timings_.assemble_s += seconds_since(t0);
+      t0 = Clock::now();
+      factor_valid_ = false;
+      try {
+        solver_.factorize(A_);
+      } catch (const NumericalError& err) {
+        std::ostringstream os;
+        os << "step " << steps_ << ", Newton iteration " << it << ": " << err.what();
+        throw NumericalError(os.str());
+      }
+      factor_valid_ = true;
+      ++fresh;
+      timings_.factorize_s += seconds_since(t0);
     }
-    timings_.factorize_s += seconds_since(t0);
     t0 = Clock::now();
     const VecX dv = solver_.solve(-g);
     timings_.solve_s += seconds_since(t0);
@@ -119,6 +139,14 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
       std::ostringstream os;
       os << "step " << steps_ << ": linear solve produced NaN (diverged)";
       throw NumericalError(os.str());
+    }
+    const double dv_norm = dv.norm();
+    const bool slow = !refresh && it > 0 && dv_norm > opts_.reuse_ratio * prev_dv;
+    if (slow && dv_norm >= prev_dv) {
+      // The stale matrix does not contract here: discard this update and redo the iteration
+      // with the current tangent.
+      refresh = true;
+      continue;
     }
     auto vdm = as_dofs(v);
     double vnorm2 = 0;
@@ -129,9 +157,15 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
       }
     last_iters_ = it + 1;
     timings_.iterations = last_iters_;
-    if (dv.norm() <= opts_.tolerance * (std::sqrt(vnorm2) + v_ref)) break;
+    timings_.factorizations = fresh;
+    if (dv_norm <= opts_.tolerance * (std::sqrt(vnorm2) + v_ref)) break;
+    if (fresh >= opts_.max_newton) break;
+    prev_dv = dv_norm;
+    refresh = !reuse || slow;
   }
   check_divergence(v, h_, size_, steps_);
+  prev_v_ = v_;
+  has_prev_v_ = true;
   v_ = v;
   x_ = x0 + h_ * v;
   for (int i = 0; i < prescribed_.size(); ++i) x_.row(prescribed_[i]) = (*targets).row(i);
@@ -188,6 +222,7 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
   if (fixed_.size() == 0 && prescribed_.size() == 0)
     throw InvalidInput("static_solve needs fixed vertices (a free body has no equilibrium)");
   const VecX& mass = model_->dof_mass();
+  factor_valid_ = false;  // the static Newton factorises K into the same solver
   VecX fload = as_dofs(f_ext);
   for (int i = 0; i < nv; ++i) fload.segment<3>(3 * i) += mass[3 * i] * gravity_;
   const MatX3 zero_v = MatX3::Zero(nv, 3);
@@ -275,6 +310,7 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
                            std::to_string(r.norm() / ref) + "); try more load_steps");
   }
   v_.setZero();
+  has_prev_v_ = false;
 }
 
 void check_divergence(const MatX3& v, double h, double size, int step) {

@@ -16,6 +16,16 @@ using ProgressFn = std::function<void(int, int)>;
 struct StepOptions {
   int max_newton = 8;        ///< 1 = one linearised solve per step (Baraff-Witkin style)
   double tolerance = 1e-7;   ///< Newton stops when |dv| <= tolerance * (|v| + v_ref)
+  /// Reuse the last factorised step matrix (a chord / lagged-Newton iteration: forces only,
+  /// one triangular solve per iteration) while it contracts by at least `reuse_ratio` per
+  /// iteration; otherwise refactorise at the current state. Same fixed point and stopping test
+  /// as Newton (whose PSD-projected tangent converges only linearly anyway, ratio ~1e-2).
+  /// Never used with max_newton = 1 (the linearised step stays exactly that).
+  bool reuse_factorization = true;
+  double reuse_ratio = 0.25;
+  /// Start each step's iteration from v_n + (v_n - v_{n-1}) instead of v_n (not with
+  /// max_newton = 1, whose answer depends on the starting point).
+  bool extrapolate = true;
 };
 
 /// Wall-clock seconds spent in each phase of the last step, summed over its Newton iterations
@@ -26,6 +36,7 @@ struct StepTimings {
   double factorize_s = 0;  ///< CHOLMOD numeric factorisation
   double solve_s = 0;      ///< CHOLMOD triangular solves
   int iterations = 0;
+  int factorizations = 0;  ///< iterations that evaluated the tangent and refactorised
 };
 
 /// Backward Euler for a Model with clamped vertices, gravity, external forces and optionally
@@ -80,6 +91,8 @@ class Integrator {
   Vec3 gravity_;
   StepOptions opts_;
   MatX3 x_, v_;
+  MatX3 prev_v_;  // velocity before the last step (for the extrapolated initial guess)
+  bool has_prev_v_ = false;
   int steps_ = 0, last_iters_ = 0;
   StepTimings timings_;
   VecXi dof_map_;  // global dof -> free index or -1
@@ -88,6 +101,7 @@ class Integrator {
   solvers::CholmodSolver solver_;
   SpMat A_;
   VecX coeff_, diag_;  // per-element matrix coefficients and system diagonal (Rayleigh path)
+  bool factor_valid_ = false;  // solver_ holds a step matrix of this pattern (reusable)
   double size_;
 };
 

@@ -23,14 +23,24 @@ static time::ProgressFn wrap_progress(py::object cb) {
 void define_time(py::module_& m) {
   py::class_<Integrator>(m, "Integrator")
       .def(py::init([](std::shared_ptr<const fem::Model> model, const py::array& fixed, double h,
-                       const Vec3& gravity, int max_newton, double tolerance) {
+                       const Vec3& gravity, int max_newton, double tolerance,
+                       bool reuse_factorization, double reuse_ratio, bool extrapolate) {
              time::StepOptions o;
              o.max_newton = max_newton;
              o.tolerance = tolerance;
+             o.reuse_factorization = reuse_factorization;
+             o.reuse_ratio = reuse_ratio;
+             o.extrapolate = extrapolate;
              return std::make_unique<Integrator>(model, as_index<1>(fixed, "fixed"), h, gravity, o);
            }),
            py::arg("model"), py::arg("fixed"), py::arg("time_step"), py::arg("gravity"),
-           py::arg("max_newton") = 8, py::arg("tolerance") = 1e-7)
+           py::arg("max_newton") = 8, py::arg("tolerance") = 1e-7,
+           py::arg("reuse_factorization") = true, py::arg("reuse_ratio") = 0.25,
+           py::arg("extrapolate") = true,
+           "reuse_factorization: iterate with the last factorised step matrix while it contracts "
+           "(chord iterations, same fixed point and stopping test) while |dv| shrinks by reuse_ratio "
+           "per iteration; ignored when max_newton = 1. extrapolate: start each step's iteration "
+           "from v_n + (v_n - v_{n-1}).")
       .def_property_readonly("x", &Integrator::x)
       .def_property_readonly("v", &Integrator::v)
       .def_property_readonly("time_step", &Integrator::time_step)
@@ -46,6 +56,7 @@ void define_time(py::module_& m) {
             d["factorize_s"] = t.factorize_s;
             d["solve_s"] = t.solve_s;
             d["iterations"] = t.iterations;
+            d["factorizations"] = t.factorizations;
             return d;
           },
           "Wall-clock seconds per phase of the last step, summed over its Newton iterations.")
