@@ -235,6 +235,71 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   }
 }
 
+void Model::reduced_tangents(const MatX3& x, const MatX& phi, MatX& Kr, MatX& Dr) const {
+  check_state(x, "x");
+  const int n = mesh_->num_vertices();
+  if (phi.rows() != 3 * n) throw InvalidInput("reduced_tangents: phi must have 3#V rows");
+  const int r = int(phi.cols());
+  const int m = mesh_->num_tets();
+  const auto& T = mesh_->tets();
+  using MatXrm = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+  const MatXrm P = phi;  // row access per vertex DOF
+  // Stacked per-element principal-frame columns Y_e = A_e Q_e (9 rows each) and W H Y_e for
+  // the elastic (first r columns) and damping (last r columns) tangents; then one product
+  // Y^T [HK HD] instead of 2 #T small ones.
+  MatXrm Y(size_t(9) * m, r), H(size_t(9) * m, 2 * r);
+  VecX cdiag = VecX::Zero(3 * n);  // lumped mass damping per DOF
+  Eigen::Matrix<double, 9, Eigen::Dynamic> Q(9, r);
+  auto at = [](int i, int j) { return i + 3 * j; };  // vec (column-major) index of entry (i, j)
+  const int pi[3] = {0, 0, 1}, pj[3] = {1, 2, 2};
+  for (int e = 0; e < m; ++e) {
+    for (int a = 1; a < 4; ++a)
+      for (int k = 0; k < 3; ++k)
+        Q.row(3 * (a - 1) + k) = P.row(3 * T(e, a) + k) - P.row(3 * T(e, 0) + k);
+    const double W = mesh_->volumes()[e];
+    Mat3 U, V;
+    Vec3 s;
+    rotation_variant_svd(mesh_->deformation_gradient(x, e), U, s, V);
+    const double cm = damping_alpha(damping_.alpha_mass, damping_.mass_poly, s[0]) * density_[e] * W / 4.0;
+    if (cm != 0.0)
+      for (int a = 0; a < 4; ++a) cdiag.segment<3>(3 * T(e, a)).array() += cm;
+    auto Ye = Y.middleRows(size_t(9) * e, 9);
+    auto He = H.middleRows(size_t(9) * e, 9);
+    if (Q.isZero(0.0)) {  // every vertex constrained (zero Phi rows)
+      Ye.setZero();
+      He.setZero();
+      continue;
+    }
+    const Vec3 Pn = principal_stress(material_, s, mu_[e], lambda_[e], edits_);
+    const Mat3 dPn = principal_stress_derivative(material_, s, mu_[e], lambda_[e], edits_);
+    const PrincipalTangent Tk = principal_tangent(s, Pn, dPn, false);
+    const PrincipalTangent Td = principal_tangent(s, Pn, dPn, true);
+    const double aK = W * damping_alpha(damping_.alpha_stiffness, damping_.stiffness_poly, s[0]);
+    const Mat9 A = principal_shape_columns(U, mesh_->Bm()[e] * V);
+    Ye.noalias() = A.lazyProduct(Q);  // principal-frame vec(dF) per unit modal coordinate
+    // H Y entry by entry (H: a 3x3 block on the diagonal entries + three 2x2 shear blocks).
+    for (int c = 0; c < r; ++c) {
+      const Vec3 dg(Ye(at(0, 0), c), Ye(at(1, 1), c), Ye(at(2, 2), c));
+      const Vec3 hk = W * (Tk.diag * dg), hd = aK * (Td.diag * dg);
+      for (int i = 0; i < 3; ++i) {
+        He(at(i, i), c) = hk[i];
+        He(at(i, i), r + c) = hd[i];
+      }
+      for (int q = 0; q < 3; ++q) {
+        const double xij = Ye(at(pi[q], pj[q]), c), xji = Ye(at(pj[q], pi[q]), c);
+        He(at(pi[q], pj[q]), c) = W * (Tk.a[q] * xij + Tk.b[q] * xji);
+        He(at(pj[q], pi[q]), c) = W * (Tk.b[q] * xij + Tk.a[q] * xji);
+        He(at(pi[q], pj[q]), r + c) = aK * (Td.a[q] * xij + Td.b[q] * xji);
+        He(at(pj[q], pi[q]), r + c) = aK * (Td.b[q] * xij + Td.a[q] * xji);
+      }
+    }
+  }
+  const MatX KD = Y.transpose() * H;
+  Kr = KD.leftCols(r);
+  Dr = KD.rightCols(r);
+  Dr.noalias() += phi.transpose() * cdiag.asDiagonal() * phi;
+}
+
 VecX Model::gather_forces(const ElementState& st) const {
   const auto& T = mesh_->tets();
   VecX f = VecX::Zero(3 * mesh_->num_vertices());

@@ -76,6 +76,16 @@ class SpaceTimeProblem {
   MatX3 positions(const MatXr& Z) const;
   /// Residual vector C(Z): physics rows first, then observation rows (unseen rows are 0).
   VecX residual(const MatXr& Z) const;
+  /// Frames per tangent evaluation in the Jacobian blocks (1: every frame, the default). k > 1
+  /// evaluates the nominal tangent at the middle frame of each run of k frames and shares it
+  /// (long recordings at 1 ms change little within a few frames; the residual stays exact,
+  /// only the Gauss-Newton direction is approximated).
+  int tangent_stride() const { return tangent_stride_; }
+  void set_tangent_stride(int k) {
+    if (k < 1) throw InvalidInput("tangent_stride must be >= 1");
+    tangent_stride_ = k;
+    linearized_ = false;
+  }
   /// Evaluate residual and reduced Jacobian blocks at Z (needed before jvp/vjp).
   void linearize(const MatXr& Z);
   /// J p for p of length frames*r (frame-major); J^T q for q of length num_residuals().
@@ -93,6 +103,7 @@ class SpaceTimeProblem {
 
  private:
   void frame_state(const MatXr& Z, int j, MatX3& x, MatX3& v) const;
+  void linearize_jacobian(const MatXr& Z);  // the blocks A_, B_ only (C_ unchanged)
   VecX physics_block(const MatXr& Z, int i, const VecX& f_next) const;
   VecX column_scale() const;
   Eigen::SparseMatrix<double> assemble_jacobian() const;
@@ -110,6 +121,7 @@ class SpaceTimeProblem {
   std::vector<MatX> A_, B_;
   VecX C_;
   bool linearized_ = false;
+  int tangent_stride_ = 1;
   mutable std::shared_ptr<Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>>> precond_;
 };
 

@@ -198,6 +198,24 @@ void define_fem(py::module_& m) {
              return M.damping_matrix(X, Vv);
            },
            py::arg("x"), py::arg("v"), "Damping matrix D = -df/dv (3#V x 3#V, scipy CSC).")
+      .def("reduced_tangents",
+           [](const Model& M, const py::array& x, const py::array& phi) {
+             const long n = M.mesh().num_vertices();
+             const MatX3 X = as_matrix<3>(x, "x", n);
+             auto P = py::array_t<double, py::array::f_style | py::array::forcecast>::ensure(phi);
+             if (!P || P.ndim() != 2 || P.shape(0) != 3 * n)
+               throw InvalidInput("phi: expected shape (3*#V, r) with #V = " + std::to_string(n));
+             const MatX Phi = Eigen::Map<const MatX>(P.data(), P.shape(0), P.shape(1));
+             MatX Kr, Dr;
+             {
+               py::gil_scoped_release r;
+               M.reduced_tangents(X, Phi, Kr, Dr);
+             }
+             return py::make_tuple(Kr, Dr);
+           },
+           py::arg("x"), py::arg("phi"),
+           "(Phi^T K Phi, Phi^T D Phi) of the model without its correction: K unprojected, D "
+           "Rayleigh on the PSD-projected tangent (what the space-time Jacobian uses).")
       .def("force_map",
            [](const Model& M, const py::array& x) {
              const MatX3 X = as_matrix<3>(x, "x", M.mesh().num_vertices());

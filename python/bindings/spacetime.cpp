@@ -81,6 +81,9 @@ void define_spacetime(py::module_& m) {
       .def_property_readonly("modes", &SpaceTimeProblem::modes)
       .def_property_readonly("num_unknowns", &SpaceTimeProblem::num_unknowns)
       .def_property_readonly("num_residuals", &SpaceTimeProblem::num_residuals)
+      .def_property("tangent_stride", &SpaceTimeProblem::tangent_stride,
+                    &SpaceTimeProblem::set_tangent_stride,
+                    "Frames sharing one tangent evaluation in the Jacobian blocks (1: every frame).")
       .def_property_readonly("num_physics_rows", &SpaceTimeProblem::num_physics_rows)
       .def("positions",
            [](const SpaceTimeProblem& P, const py::array& Z) {

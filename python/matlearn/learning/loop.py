@@ -94,7 +94,9 @@ class LearnOptions:
     iteration instead of one per candidate, for large cases, bench/learning_scale.py); patience: iterations without
     improvement before stopping; seed: k-means seed; backtrack: shortened update steps tried
     when the full update does not lower the train error; track: tracking options for cloud
-    recordings (None: defaults)."""
+    recordings (None: defaults); tangent_stride: frames sharing one nominal tangent evaluation
+    in the space-time Jacobian (1: every frame; the per-frame tangents dominate the space-time
+    cost of long recordings at 1 ms, bench/learning_scale.py measures the tradeoff)."""
 
     iterations: int = 8
     lam: float | None = None
@@ -112,6 +114,7 @@ class LearnOptions:
     track: TrackOptions | None = None
     smoothing: tuple = (1e-3, 1e-2, 1e-1, 1.0)
     escalate: int = 2
+    tangent_stride: int = 1
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
@@ -126,6 +129,8 @@ class LearnOptions:
         self.smoothing = tuple(float(t) for t in self.smoothing)
         if not self.smoothing or any(not t >= 0 for t in self.smoothing):
             raise ValueError(f"smoothing: at least one weight, all >= 0, got {self.smoothing}")
+        if self.tangent_stride < 1:
+            raise ValueError(f"tangent_stride must be >= 1, got {self.tangent_stride}")
         if self.ridge_search not in ("all", "first"):
             raise ValueError(f"ridge_search must be 'all' or 'first', got {self.ridge_search!r}")
 
@@ -300,6 +305,7 @@ class Learner:
                 basis.append(self._basis_sims[i][1])
             phi = pod_basis(basis, V, cons, self.opt.modes, self.opt.pod_window)
             setup = build_problem(self.scene, model, rec, phi, self.lam, emb)
+            setup.problem.tangent_stride = self.opt.tangent_stride
             out = solve_spacetime(setup, X0, iterations=self.opt.gn_iterations)
             fc = out["control_forces"]
             red = fc.reshape(len(fc), -1) @ phi
