@@ -24,7 +24,8 @@ def run(args) -> int:
     if out.exists() and any(out.iterdir()) and not args.resume and not args.force:
         raise ValueError(f"{out} exists and is not empty; use --resume to continue it or --force")
     opts = LearnOptions(iterations=args.iterations, lam=args.lam, modes=args.modes,
-                        centers=args.centers, seed=args.seed)
+                        centers=args.centers, seed=args.seed,
+                        refresh_correspondences=args.refresh_correspondences)
     t0 = time.time()
     log = (lambda *a: print(*a, file=sys.stderr, flush=True)) if not args.quiet else None
     from ..learning.start import start_scene
@@ -90,5 +91,8 @@ def register(subparsers) -> None:
                         "model then never fits the train recordings worse than it)")
     p.add_argument("--no-distill", action="store_true", help="skip the MLP distillation")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--refresh-correspondences", type=int, default=0, metavar="N",
+                   help="point clouds: rounds of re-estimating the correspondences at the space-time "
+                        "trajectory and solving again (default 0: the tracker's)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)

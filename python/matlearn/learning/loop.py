@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from ..clouds.prepare import cloud_lambda, motion_scales, track_scene
-from ..clouds.tracking import TrackOptions
+from ..clouds.tracking import TrackOptions, refresh_markers
 from ..embedding import embed_points
 from ..recording import load_recording
 from ..replay import initial_state, interpolate_frames, simulate_recording
@@ -96,7 +96,13 @@ class LearnOptions:
     when the full update does not lower the train error; track: tracking options for cloud
     recordings (None: defaults); tangent_stride: frames sharing one nominal tangent evaluation
     in the space-time Jacobian (1: every frame; the per-frame tangents dominate the space-time
-    cost of long recordings at 1 ms, bench/learning_scale.py measures the tradeoff)."""
+    cost of long recordings at 1 ms, bench/learning_scale.py measures the tradeoff);
+    refresh_correspondences: for train recordings tracked from point clouds, rounds of
+    re-estimating the cloud correspondences at the space-time trajectory
+    (:func:`matlearn.clouds.tracking.refresh_markers`) followed by another Gauss-Newton solve
+    against the refreshed markers (method.md section 7; 0: the tracker's correspondences
+    throughout; on single-view scans of a bar one round ends 2 % further from the true surface,
+    tests/python/test_learn_clouds.py)."""
 
     iterations: int = 8
     lam: float | None = None
@@ -115,6 +121,7 @@ class LearnOptions:
     smoothing: tuple = (1e-3, 1e-2, 1e-1, 1.0)
     escalate: int = 2
     tangent_stride: int = 1
+    refresh_correspondences: int = 0
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
@@ -131,6 +138,8 @@ class LearnOptions:
             raise ValueError(f"smoothing: at least one weight, all >= 0, got {self.smoothing}")
         if self.tangent_stride < 1:
             raise ValueError(f"tangent_stride must be >= 1, got {self.tangent_stride}")
+        if self.refresh_correspondences < 0:
+            raise ValueError(f"refresh_correspondences must be >= 0, got {self.refresh_correspondences}")
         if self.ridge_search not in ("all", "first"):
             raise ValueError(f"ridge_search must be 'all' or 'first', got {self.ridge_search!r}")
 
@@ -307,6 +316,16 @@ class Learner:
             setup = build_problem(self.scene, model, rec, phi, self.lam, emb)
             setup.problem.tangent_stride = self.opt.tangent_stride
             out = solve_spacetime(setup, X0, iterations=self.opt.gn_iterations)
+            rounds = []
+            source = self._cloud_source(i) if self.opt.refresh_correspondences else None
+            for _ in range(self.opt.refresh_correspondences if source is not None else 0):
+                # Re-estimate the cloud correspondences at the space-time trajectory, solve again.
+                refreshed = refresh_markers(self.scene, source, setup.times, out["X"], model, self.opt.track)
+                setup = build_problem(self.scene, model, refreshed, phi, self.lam,
+                                      embed_points(self.scene.mesh, refreshed.marker_rest))
+                setup.problem.tangent_stride = self.opt.tangent_stride
+                out = solve_spacetime(setup, out["X"], iterations=self.opt.gn_iterations)
+                rounds.append(out["report"]["cost"])
             fc = out["control_forces"]
             red = fc.reshape(len(fc), -1) @ phi
             stride = max(1, int(np.ceil(len(fc) / self.opt.fit_frames)))
@@ -315,8 +334,18 @@ class Learner:
             info.append({"cost": out["report"]["cost"], "cg_iterations": out["report"]["cg_iterations"],
                          "step_length": out["report"]["step_length"],
                          "control_force_rms": float(np.sqrt(np.mean(red**2))), "modes": int(phi.shape[1]),
-                         "frames": int(len(out["X"])), "wall_s": time.time() - t0})
+                         "frames": int(len(out["X"])), "wall_s": time.time() - t0,
+                         "refresh_costs": rounds})
         return frames, new_X, info
+
+    def _cloud_source(self, i):
+        """The cloud recording train recording i was tracked from, or None (a marker recording)."""
+        if not hasattr(self, "_sources"):
+            src = {str(Path(v["tracked"]).resolve()): p for p, v in self.tracking.items()}
+            pairs = zip(self.scene.recording_paths("train"), self.scene.recordings_with_role("train"))
+            self._sources = [src.get(str(Path(p).resolve())) for p, r in pairs if r.num_markers > 0]
+        p = self._sources[i]
+        return load_recording(p) if p is not None else None
 
     def _train_error(self, params):
         """(max train error %, errors, sims) of a correction; inf when it cannot be simulated."""
