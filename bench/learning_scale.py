@@ -22,9 +22,10 @@ The first forward simulation (nominal model) is the in-run reference for the rat
 Writes bench/results/learning_scale.json: {"tets", "vertices", "frames", "wall_s" (whole run),
 "stages": {stage: {"s", "calls"}}, "ratio_to_forward_sim", "iterations": [per-iteration train
 error, update, wall], "nominal_train_max_error_pct", "final_train_max_error_pct", "stop",
-"options", "target_s", "met", "load_avg_1min_start/end", "commit", ...}.
+"options", "target_s", "met", "load_avg_1min_start/end", "commit", ...}; with --stride-check only "tangent_stride_check"
+(the space-time accuracy of tangent_stride, see stride_check) is added to it.
 
-    OMP_NUM_THREADS=1 python bench/learning_scale.py [--tets 5000] [--duration 1.0]
+    OMP_NUM_THREADS=1 python bench/learning_scale.py [--tets 5000] [--duration 1.0] [--stride-check]
 """
 from __future__ import annotations
 
@@ -98,6 +99,43 @@ def instrument(stages: dict, first: list):
     return originals
 
 
+def stride_check(sc, stride: int) -> dict:
+    """The accuracy side of tangent_stride: iteration 0's space-time solve (nominal model,
+    marker-following start, the loop's basis) with the tangent at every frame and at every
+    `stride`-th frame; final costs and the relative difference of the control forces (what the
+    fit sees)."""
+    import numpy as np
+
+    from matlearn.embedding import embed_points
+    from matlearn.learning.initial import initial_trajectory
+    from matlearn.learning.pod import pod_basis
+    from matlearn.learning.spacetime import build_problem, constrained_vertices, solve_spacetime
+    from matlearn.replay import simulate_recording
+
+    rec = sc.recordings_with_role("train")[0]
+    emb = embed_points(sc.mesh, rec.marker_rest)
+    model, opt = sc.model(), LearnOptions()
+    sim = simulate_recording(sc, model, rec, state=loop.robust_initial_state(sc, model, rec, emb))
+    _, X0, _ = initial_trajectory(sc, model, rec, emb)
+    cons, _, _ = constrained_vertices(sc, rec)
+    phi = pod_basis([sim[1], X0], sc.mesh.vertices, cons, opt.modes, opt.pod_window)
+    out = {}
+    for k in (1, stride):
+        setup = build_problem(sc, model, rec, phi, 1.0, emb)
+        setup.problem.tangent_stride = k
+        t = time.time()
+        res = solve_spacetime(setup, X0, iterations=opt.gn_iterations)
+        out[k] = (time.time() - t, res)
+    fc1, fck = out[1][1]["control_forces"], out[stride][1]["control_forces"]
+    return {"stride": stride, "gn_iterations": opt.gn_iterations,
+            "cost_stride_1": [float(c) for c in out[1][1]["report"]["cost"]],
+            f"cost_stride_{stride}": [float(c) for c in out[stride][1]["report"]["cost"]],
+            "wall_s_stride_1": out[1][0], f"wall_s_stride_{stride}": out[stride][0],
+            "control_force_relative_difference": float(np.linalg.norm(fck - fc1) / np.linalg.norm(fc1)),
+            "trajectory_max_difference_m": float(np.abs(out[stride][1]["X"] - out[1][1]["X"]).max()),
+            "load_avg_1min_end": os.getloadavg()[0], "commit": commit()}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tets", type=int, default=5000)
@@ -108,17 +146,27 @@ def main(argv=None) -> int:
     ap.add_argument("--tangent-stride", type=int, default=10)
     ap.add_argument("--ridge-search", default="first", choices=("first", "all"))
     ap.add_argument("--work", default="/tmp/matlearn_learning_scale")
+    ap.add_argument("--stride-check", action="store_true",
+                    help="only compare iteration 0's space-time solve at tangent stride 1 and "
+                         "--tangent-stride, added to the existing JSON as tangent_stride_check")
     args = ap.parse_args(argv)
     work = Path(args.work)
     t0 = time.time()
     path = build(work, args.tets, args.duration, args.frame_rate, args.marker_fraction)
     case_s = time.time() - t0
     sc = load_scene(path)
+    if args.stride_check:
+        doc = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+        doc["tangent_stride_check"] = chk = stride_check(sc, args.tangent_stride)
+        RESULTS.write_text(json.dumps(doc, indent=1, default=float))
+        print(json.dumps(chk, indent=1))
+        return 0
     rec = sc.recordings_with_role("train")[0]
     opt = LearnOptions(iterations=args.iterations, ridge_search=args.ridge_search,
                        tangent_stride=args.tangent_stride)
     run = work / f"run_{sc.mesh.num_tets}"
     shutil.rmtree(run, ignore_errors=True)
+    code = commit()  # the code that runs (read before the run: the tree may change meanwhile)
     stages, first = {}, []
     instrument(stages, first)
     load0 = os.getloadavg()[0]
@@ -151,7 +199,7 @@ def main(argv=None) -> int:
                        "smoothing": list(opt.smoothing), "patience": opt.patience},
            "case_build_s": case_s, "load_avg_1min_start": load0, "load_avg_1min_end": load1,
            "cpus": os.cpu_count(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-           "commit": commit()}
+           "commit": code}
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(doc, indent=1, default=float))
     print(f"\n{doc['tets']} tets, {doc['steps']} steps of {sc.time_step:g} s, {doc['markers']} markers "
