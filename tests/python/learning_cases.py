@@ -1,8 +1,11 @@
-"""The small learning case shared by the loop and end-to-end tests: a neo-Hookean bar learned
-from a co-rotated nominal model (release from a tip load; the test pulls harder)."""
+"""Shared learning test helpers: the small learning case of the loop and end-to-end tests (a
+neo-Hookean bar learned from a co-rotated nominal model: release from a tip load; the test pulls
+harder) and the nominal energy used by the passivity tests."""
 from __future__ import annotations
 
-from matlearn import meshes
+import numpy as np
+
+from matlearn import _core, meshes
 from matlearn.materials import Damping, Material
 from matlearn.synthetic import Motion, make_case
 
@@ -18,3 +21,12 @@ def small_bar_case(folder):
                      Material("neo_hookean", 2e5, 0.43, 1000.0), Damping(0.0, 0.004),
                      mesh, Material("corotated", 3.5e5, 0.43, 1000.0), Damping(0.0, 0.004),
                      [[-1, -1, -1], [1e-4, 1, 1]], motions, marker_fraction=0.5, seed=3)
+
+
+def nominal_energy(sc, model, x, v) -> float:
+    """Nominal elastic energy + kinetic energy (J) of state (x, v) of scene `sc` under `model`."""
+    mu, lam = sc.material.lame(sc.mesh.num_tets)
+    Fh = np.asarray(model.principal_kinematics(x, v)[0])
+    psi = np.asarray(_core.fem.principal_energy(sc.material.model, Fh, mu, lam, []))
+    m = np.asarray(model.vertex_mass)
+    return float(psi @ np.asarray(sc.mesh.rest_volumes) + 0.5 * (m * (v**2).sum(1)).sum())

@@ -19,6 +19,8 @@ from matlearn.learning.io import mlp_correction
 from matlearn.materials import Damping, Material
 from matlearn.scene import Scene
 
+from learning_cases import nominal_energy
+
 
 def _inputs(n, seed):
     rng = np.random.default_rng(seed)
@@ -230,14 +232,6 @@ def test_mlp_dalpha_enters_the_model_exactly_as_the_rbf_damping_part(c):
         np.testing.assert_allclose(K[0], K[i], rtol=1e-12, atol=1e-12 * np.abs(K[i]).max())
 
 
-def _energy(sc, model, x, v):
-    mu, lam = sc.material.lame(sc.mesh.num_tets)
-    Fh = np.asarray(model.principal_kinematics(x, v)[0])
-    psi = np.asarray(_core.fem.principal_energy(sc.material.model, Fh, mu, lam, []))
-    m = np.asarray(model.vertex_mass)
-    return float(psi @ np.asarray(sc.mesh.rest_volumes) + 0.5 * (m * (v**2).sum(1)).sum())
-
-
 def test_mlp_damping_is_passive_energy_never_increases():
     # An MLP whose dalpha is strongly negative in places and whose stress outputs are zero: the
     # Model clamps alpha_K + dalpha at 0, so an unforced, undriven, gravity-free simulation never
@@ -262,7 +256,7 @@ def test_mlp_damping_is_passive_energy_never_increases():
     dal = np.concatenate([np.asarray(mlp.evaluate(*model.principal_kinematics(x, v)[:2])[3]) for x, v in zip(X, Vel)])
     # alpha_K + dalpha (nominal alpha_K = 2 ms) really clamped at 0 somewhere, not everywhere.
     assert dal.min() < -0.004 and dal.max() > -0.002, (dal.min(), dal.max())
-    E = np.array([_energy(sc, model, x, v) for x, v in zip(X, Vel)])
+    E = np.array([nominal_energy(sc, model, x, v) for x, v in zip(X, Vel)])
     assert E[0] > 0
     assert np.all(np.diff(E) <= 1e-9 * E[0]), np.diff(E).max()
     assert E[-1] < E[0]

@@ -7,6 +7,8 @@ from matlearn.learning.fit import FitFrames, RbfParams, fit_correction, rbf_kern
 from matlearn.materials import Damping, Material
 from matlearn.scene import Scene
 
+from learning_cases import nominal_energy
+
 
 def _scene(material, damping=None):
     mesh = meshes.bar(0.08, 0.02, 0.02, cells=(4, 1, 1))
@@ -81,14 +83,6 @@ def test_fit_recovers_strain_dependent_damping():
     assert np.sqrt(np.mean((got - want) ** 2)) < 0.02 * np.abs(want).max()
 
 
-def _energy(sc, model, x, v):
-    mu, lam = sc.material.lame(sc.mesh.num_tets)
-    Fh = np.asarray(model.principal_kinematics(x, v)[0])
-    psi = np.asarray(_core.fem.principal_energy(sc.material.model, Fh, mu, lam, []))
-    m = np.asarray(model.vertex_mass)
-    return float(psi @ np.asarray(sc.mesh.rest_volumes) + 0.5 * (m * (v**2).sum(1)).sum())
-
-
 def test_learned_damping_is_passive_energy_never_increases():
     # A learned damping that is strongly negative in places (alpha_bias -1 s): the C++ clamps
     # alpha_K + dalpha at 0, so an unforced, undriven, gravity-free simulation never gains energy.
@@ -107,7 +101,7 @@ def test_learned_damping_is_passive_energy_never_increases():
     integ = _core.time.Integrator(model, sc.fixed, 1e-3, np.zeros(3), 30, 1e-12)
     integ.set_state(x0, np.zeros((n, 3)))
     X, Vel = integ.simulate(200, np.zeros((n, 3)), 1)
-    E = np.array([_energy(sc, model, x, v) for x, v in zip(X, Vel)])
+    E = np.array([nominal_energy(sc, model, x, v) for x, v in zip(X, Vel)])
     assert E[0] > 0
     assert np.all(np.diff(E) <= 1e-9 * E[0]), np.diff(E).max()
     assert E[-1] < 0.9 * E[0]
