@@ -86,9 +86,10 @@ def register(subparsers) -> None:
     p.add_argument("--modes", type=int, default=20, help="POD modes r (default 20)")
     p.add_argument("--centers", type=int, default=24, help="RBF centres (default 24)")
     p.add_argument("--start", choices=("nominal", "baseline"), default="nominal",
-                   help="start from the scene's nominal parameters, or from E, nu, alpha_M, alpha_K "
-                        "fitted to the train recordings first (the Wang-2015 baseline; the learned "
-                        "model then never fits the train recordings worse than it)")
+                   help="start from the scene's nominal parameters, or from E, nu, alpha_K fitted to the "
+                        "train recordings first (alpha_M held: the Wang-2015 baseline less the term the "
+                        "learner cannot undo; the learned model then never fits the train recordings "
+                        "worse than that fit)")
     p.add_argument("--no-distill", action="store_true", help="skip the MLP distillation")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--refresh-correspondences", type=int, default=0, metavar="N",

@@ -203,7 +203,12 @@ class Learner:
         scene, self.tracking = track_scene(scene, self.run / "tracked", self.opt.track, self.log,
                                            progress=log is not None)
         self.scene = scene
-        self.train = [r for r in scene.recordings_with_role("train") if r.num_markers > 0]
+        train = [(p, r) for p, r in zip(scene.recording_paths("train"), scene.recordings_with_role("train"))
+                 if r.num_markers > 0]
+        self.train = [r for _, r in train]
+        # the cloud recording each train recording was tracked from (None: a marker recording)
+        tracked_from = {str(Path(v["tracked"]).resolve()): p for p, v in self.tracking.items()}
+        self.cloud_sources = [tracked_from.get(str(Path(p).resolve())) for p, _ in train]
         if not self.train:
             raise ValueError("the scene has no 'train' recording with markers or point clouds to learn from")
         self.test = [r for r in scene.recordings_with_role("test") if r.num_markers > 0]
@@ -317,7 +322,8 @@ class Learner:
             setup.problem.tangent_stride = self.opt.tangent_stride
             out = solve_spacetime(setup, X0, iterations=self.opt.gn_iterations)
             rounds = []
-            source = self._cloud_source(i) if self.opt.refresh_correspondences else None
+            cloud = self.cloud_sources[i] if self.opt.refresh_correspondences else None
+            source = load_recording(cloud) if cloud is not None else None
             for _ in range(self.opt.refresh_correspondences if source is not None else 0):
                 # Re-estimate the cloud correspondences at the space-time trajectory, solve again.
                 refreshed = refresh_markers(self.scene, source, setup.times, out["X"], model, self.opt.track)
@@ -337,15 +343,6 @@ class Learner:
                          "frames": int(len(out["X"])), "wall_s": time.time() - t0,
                          "refresh_costs": rounds})
         return frames, new_X, info
-
-    def _cloud_source(self, i):
-        """The cloud recording train recording i was tracked from, or None (a marker recording)."""
-        if not hasattr(self, "_sources"):
-            src = {str(Path(v["tracked"]).resolve()): p for p, v in self.tracking.items()}
-            pairs = zip(self.scene.recording_paths("train"), self.scene.recordings_with_role("train"))
-            self._sources = [src.get(str(Path(p).resolve())) for p, r in pairs if r.num_markers > 0]
-        p = self._sources[i]
-        return load_recording(p) if p is not None else None
 
     def _train_error(self, params):
         """(max train error %, errors, sims) of a correction; inf when it cannot be simulated."""
