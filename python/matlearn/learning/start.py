@@ -32,26 +32,24 @@ START_JSON = "start.json"
 STARTS = ("nominal", "baseline")
 
 
-def material_dict(mat: Material) -> dict:
-    return {"model": mat.model, "youngs_modulus": np.asarray(mat.youngs_modulus, float).tolist(),
-            "poisson_ratio": np.asarray(mat.poisson_ratio, float).tolist(),
-            "density": np.asarray(mat.density, float).tolist(), "edits": [list(map(float, e)) for e in mat.edits]}
+def spec_dict(spec) -> dict:
+    """A Material or Damping (dataclasses) as JSON values: per-tet arrays as lists."""
+    return {k: np.asarray(v, float).tolist() if isinstance(v, np.ndarray) else v
+            for k, v in dataclasses.asdict(spec).items()}
 
 
-def damping_dict(d: Damping) -> dict:
-    return {"alpha_mass": float(d.alpha_mass), "alpha_stiffness": float(d.alpha_stiffness),
-            "mass_poly": [float(c) for c in d.mass_poly], "stiffness_poly": [float(c) for c in d.stiffness_poly]}
+def _number(v):
+    """A JSON scalar or per-tet list back as float or array."""
+    return np.asarray(v, float) if np.ndim(v) else float(v)
 
 
 def material_from_dict(d: dict) -> Material:
-    return Material(d["model"], np.asarray(d["youngs_modulus"], float) if np.ndim(d["youngs_modulus"]) else
-                    float(d["youngs_modulus"]), np.asarray(d["poisson_ratio"], float) if np.ndim(d["poisson_ratio"])
-                    else float(d["poisson_ratio"]), np.asarray(d["density"], float) if np.ndim(d["density"])
-                    else float(d["density"]), [tuple(e) for e in d.get("edits", [])])
+    return Material(d["model"], _number(d["youngs_modulus"]), _number(d["poisson_ratio"]),
+                    _number(d["density"]), [tuple(e) for e in d.get("edits", [])])
 
 
 def damping_from_dict(d: dict) -> Damping:
-    return Damping(d["alpha_mass"], d["alpha_stiffness"], list(d.get("mass_poly", [])),
+    return Damping(float(d["alpha_mass"]), float(d["alpha_stiffness"]), list(d.get("mass_poly", [])),
                    list(d.get("stiffness_poly", [])))
 
 
@@ -78,8 +76,8 @@ def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluation
         law = scene.material.model if scene.material.model in ("corotated", "neo_hookean") else "corotated"
         fit = fit_parameters(scene, law, max_evaluations=max_evaluations,
                              alpha_mass=float(scene.damping.alpha_mass), start=warm)
-    info = {"start": "baseline", "material": material_dict(fit["material"]),
-            "damping": damping_dict(fit["damping"]), "evaluations": fit.get("evaluations"),
+    info = {"start": "baseline", "material": spec_dict(fit["material"]),
+            "damping": spec_dict(fit["damping"]), "evaluations": fit.get("evaluations"),
             "train_rms_pct": fit.get("train_rms_pct")}
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
