@@ -74,7 +74,7 @@ def build_case(work: Path, name: str, spec: dict, seed: int, reuse: bool = True)
             return path, region_model
         except RuntimeError as err:
             print(f"{name}: truth hold failed with {steps} load steps ({err})", file=sys.stderr)
-            if "history_dependence" in spec["truth"]:  # stateful truth: start afresh
+            if "history_dependence" in spec["effects"]:  # stateful truth: start afresh
                 truth_mat, truth_damping, correction, _ = build_truth(spec, truth_mesh, model_mesh, axis, clamp)
     raise RuntimeError(f"{name}: the truth's static hold failed for every load-step count")
 

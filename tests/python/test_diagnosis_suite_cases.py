@@ -92,7 +92,7 @@ def test_random_set_is_deterministic_and_valid():
 
 def test_named_set_covers_the_vocabulary():
     specs = dc.named_specs()
-    assert len(specs) == 13
+    assert len(specs) == 14
     covered = set().union(*(s["effects"] for s in specs.values()))
     assert covered == set(dc.EFFECTS)
     assert {s["shape"]["kind"] for s in specs.values()} >= {"bar", "plate", "capsule", "sphere"}

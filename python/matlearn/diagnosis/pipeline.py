@@ -283,11 +283,14 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             entry["loo_rss"] = cv[name]
         effects.append(entry)
     if hist is not None:
-        # outside the library: nothing can be added, the gap stays what the stateless effects leave
+        # outside the library: nothing can be added; the gap after is what the stateless reference
+        # of the test leaves (the verdict's stateless effects, or the nominal model, with the
+        # uniform stiffness refit), i.e. the best a correction N(Fh, Fhdot) of this kind reaches
         stateless = [cumulative[n] for n in verdict if n in cumulative and cumulative[n]]
+        after = _safe_gap(P, ctx, hist["reference"]) if hist["parameters"] else None
         effects.append({"name": "history_dependence", "explained": hist["explained"],
                         "score": hist["score"], "parameters": hist["parameters"],
-                        "gap_after": stateless[-1] if stateless else dict(gap_before),
+                        "gap_after": after or (stateless[-1] if stateless else dict(gap_before)),
                         "outside_library": True})
     lead = next((e for e in effects if verdict and e["name"] == verdict[0]), {})
     if "heterogeneity" in verdict or "heterogeneity" in lead.get("confounded_with", []):
