@@ -147,6 +147,13 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=4, help="max outer iterations of the loop")
     ap.add_argument("--tangent-stride", type=int, default=10)
     ap.add_argument("--ridge-search", default="first", choices=("first", "all"))
+    ap.add_argument("--jacobian-every", type=int, default=3,
+                    help="Gauss-Newton steps per space-time Jacobian evaluation (chord steps between)")
+    ap.add_argument("--gn-tolerance", type=float, default=1e-2,
+                    help="space-time solve stops when a step lowers the cost by less than this fraction")
+    ap.add_argument("--retry-rejected", action="store_true",
+                    help="after a rejected update, solve again with the candidate's motion in the basis")
+    ap.add_argument("--no-early-stop", action="store_true", help="simulate every candidate check to the end")
     ap.add_argument("--work", default="/tmp/matlearn_learning_scale")
     ap.add_argument("--stride-check", action="store_true",
                     help="only compare iteration 0's space-time solve at tangent stride 1 and "
@@ -165,7 +172,9 @@ def main(argv=None) -> int:
         return 0
     rec = sc.recordings_with_role("train")[0]
     opt = LearnOptions(iterations=args.iterations, ridge_search=args.ridge_search,
-                       tangent_stride=args.tangent_stride)
+                       tangent_stride=args.tangent_stride, jacobian_every=args.jacobian_every,
+                       gn_tolerance=args.gn_tolerance, retry_rejected=args.retry_rejected,
+                       early_stop=not args.no_early_stop)
     run = work / f"run_{sc.mesh.num_tets}"
     shutil.rmtree(run, ignore_errors=True)
     code = commit()  # the code that runs (read before the run: the tree may change meanwhile)
@@ -179,8 +188,12 @@ def main(argv=None) -> int:
     its = [{"iteration": m["iteration"], "train_max_error_pct": m["train"]["max_error_pct"],
             "train_rms_error_pct": m["train"]["rms_error_pct"], "update": m.get("update"),
             "update_step": (m.get("fit") or {}).get("update_step"), "wall_s": m.get("wall_s"),
-            "spacetime": [{k: s[k] for k in ("cost", "cg_iterations", "step_length", "wall_s")}
+            "spacetime": [{k: s.get(k) for k in ("cost", "cg_iterations", "step_length", "wall_s",
+                                                 "marker_max_error_pct")}
                           for s in m.get("spacetime", [])],
+            "checks": [{k: c.get(k) for k in ("smooth", "step", "train_max_error_pct", "stopped_early")}
+                       for c in (m.get("fit") or {}).get("ridge_candidates", [])
+                       + (m.get("fit") or {}).get("steps_tried", [])[1:]],
             "stop": m.get("stop")} for m in res["metrics"]]
     ref = first[0] if first else float("nan")
     doc = {"benchmark": "learning_scale", "tets": int(sc.mesh.num_tets), "vertices": int(sc.mesh.num_vertices),
@@ -197,6 +210,8 @@ def main(argv=None) -> int:
            "stop": res["metrics"][-1].get("stop"), "iterations": its,
            "options": {"iterations": opt.iterations, "ridge_search": opt.ridge_search,
                        "tangent_stride": opt.tangent_stride, "gn_iterations": opt.gn_iterations,
+                       "jacobian_every": opt.jacobian_every, "gn_tolerance": opt.gn_tolerance,
+                       "retry_rejected": opt.retry_rejected, "early_stop": opt.early_stop,
                        "modes": opt.modes, "centers": opt.centers, "fit_frames": opt.fit_frames,
                        "smoothing": list(opt.smoothing), "patience": opt.patience},
            "case_build_s": case_s, "load_avg_1min_start": load0, "load_avg_1min_end": load1,

@@ -427,12 +427,19 @@ SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const Pro
     rep.cost.push_back(0.5 * C.squaredNorm());
     rep.physics_cost.push_back(0.5 * C.head(np).squaredNorm());
   };
+  if (opt.jacobian_every < 1) throw InvalidInput("jacobian_every must be >= 1");
+  double last_step = 1.0;
   for (int it = 0; it < opt.max_iterations; ++it) {
     if (it == 0) {
       linearize(Z);
       record(C_);
-    } else {
+    } else if (opt.jacobian_every == 1) {
       linearize_jacobian(Z);  // C_ is already the residual at Z (from the line search)
+    } else if (it % opt.jacobian_every == 0 || last_step < 1.0) {
+      linearize_jacobian(Z);
+      precond_.reset();  // chord steps: the preconditioner of the blocks they reuse (exact)
+    } else {
+      linearized_ = true;  // chord step: the blocks of an earlier step, the residual at Z
     }
     const double cost = 0.5 * C_.squaredNorm();
     int cg = 0;
@@ -461,6 +468,7 @@ SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const Pro
     }
     Z = Zt;
     C_ = Ct;
+    last_step = t;
     rep.step_length.push_back(t);
     record(Ct);
     if (progress) progress(it + 1, opt.max_iterations);

@@ -38,6 +38,12 @@ struct SolveOptions {
   /// "direct": factorise the block-banded normal equations J^T J at every step.
   std::string solver = "pcgls";
   int refresh_iterations = 30;
+  /// Gauss-Newton steps per evaluation of the Jacobian blocks (1: every step, exact
+  /// Gauss-Newton on the nominal tangent). k > 1 re-evaluates them at every k-th step and after
+  /// a step the line search had to shorten, reusing them in between (a chord Gauss-Newton: the
+  /// residual stays exact; the blocks are dominated by the mass term M/h^2 and the linear
+  /// observation rows, and their evaluation costs more than a residual on long recordings).
+  int jacobian_every = 1;
 };
 
 /// Called after each Gauss-Newton step with (step, max steps); may throw to cancel.

@@ -144,7 +144,8 @@ void define_spacetime(py::module_& m) {
            "One Gauss-Newton step: argmin |J dz + C| at the last linearisation; (dz, iterations).")
       .def("solve",
            [](SpaceTimeProblem& P, const py::array& Z0, int max_iterations, int cg_iterations,
-              double cg_tolerance, double tolerance, const std::string& solver, py::object progress) {
+              double cg_tolerance, double tolerance, const std::string& solver, py::object progress,
+              int jacobian_every) {
              MatXr z = as_rowmajor(Z0, "Z0", P.modes(), P.frames());
              spacetime::SolveOptions o;
              o.max_iterations = max_iterations;
@@ -152,6 +153,7 @@ void define_spacetime(py::module_& m) {
              o.cg_tolerance = cg_tolerance;
              o.tolerance = tolerance;
              o.solver = solver;
+             o.jacobian_every = jacobian_every;
              spacetime::ProgressFn cb = [progress](int done, int total) {
                py::gil_scoped_acquire gil;
                if (PyErr_CheckSignals() != 0) throw py::error_already_set();
@@ -172,8 +174,10 @@ void define_spacetime(py::module_& m) {
            },
            py::arg("Z0"), py::arg("max_iterations") = 10, py::arg("cg_iterations") = 300,
            py::arg("cg_tolerance") = 1e-6, py::arg("tolerance") = 1e-5, py::arg("solver") = "pcgls",
-           py::arg("progress") = py::none(),
-           "Gauss-Newton from Z0; returns dict(Z, cost, physics_cost, cg_iterations, step_length).")
+           py::arg("progress") = py::none(), py::arg("jacobian_every") = 1,
+           "Gauss-Newton from Z0; returns dict(Z, cost, physics_cost, cg_iterations, step_length). "
+           "jacobian_every k > 1: the Jacobian blocks are re-evaluated at every k-th step and after "
+           "a shortened step only (chord steps in between).")
       .def("control_forces",
            [](const SpaceTimeProblem& P, const py::array& Z) {
              const MatXr z = as_rowmajor(Z, "Z", P.modes(), P.frames());

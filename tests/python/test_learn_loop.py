@@ -121,7 +121,7 @@ def test_ridge_search(case, tmp_path, monkeypatch, search, expect_fits, expect_r
                           LearnOptions(ridges=(1e-6, 1e-4, 1e-2), smoothing=(0.1,), ridge_search=search,
                                        **{"modes": 4}), log=None)
     errors = {1e-6: 1.5, 1e-4: 0.9, 1e-2: 0.8}  # current error 1.0: 1e-4 is the first to improve
-    monkeypatch.setattr(lr, "_train_error", lambda p: (errors[float(p.weights[0, 0])], [], []))
+    monkeypatch.setattr(lr, "_train_error", lambda p, bound=np.inf: (errors[float(p.weights[0, 0])], [], []))
     p, info, _ = lr._update(None, None, None, 1.0, 0)
     assert fits == [1e-6, 1e-4, 1e-2][:expect_fits] and len(systems) == 1
     assert info["ridge"] == expect_ridge and float(p.weights[0, 0]) == expect_ridge
@@ -147,7 +147,7 @@ def test_unstable_candidates_escalate_the_smoothing_before_shortening(case, tmp_
     lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
                           LearnOptions(smoothing=(0.1, 1.0), modes=4), log=None)
     simulated = []
-    monkeypatch.setattr(lr, "_train_error", lambda p: (simulated.append(p) or 0.5, [], []))
+    monkeypatch.setattr(lr, "_train_error", lambda p, bound=np.inf: (simulated.append(p) or 0.5, [], []))
     p, info, _ = lr._update(None, None, None, 1.0, 0)
     assert fits == [0.1, 1.0, 10.0, 100.0]
     assert info["smooth"] == 100.0 and info["update_step"] == 1.0 and len(simulated) == 1

@@ -99,11 +99,14 @@ def build_problem(scene, model, rec, phi, lam: float, embedding=None,
 
 def solve_spacetime(setup: SpaceTimeSetup, X0, iterations: int = 8, cg_iterations: int = 400,
                     cg_tolerance: float = 1e-8, tolerance: float = 2e-3, solver: str = "pcgls",
-                    progress=None) -> dict:
+                    progress=None, jacobian_every: int = 1) -> dict:
     """Gauss-Newton from the trajectory X0 (frames, n, 3). Returns dict(Z, X (frames, n, 3),
-    V (frames, n, 3), control_forces (frames-2, n, 3) for frames 2..N, report)."""
+    V (frames, n, 3), control_forces (frames-2, n, 3) for frames 2..N, report).
+    jacobian_every k > 1: the Jacobian blocks are re-evaluated only at every k-th step and after
+    a shortened step (chord Gauss-Newton; the residual stays exact)."""
     Z0 = np.ascontiguousarray(setup.project(X0))
-    rep = setup.problem.solve(Z0, iterations, cg_iterations, cg_tolerance, tolerance, solver, progress)
+    rep = setup.problem.solve(Z0, iterations, cg_iterations, cg_tolerance, tolerance, solver, progress,
+                              jacobian_every)
     Z = rep.pop("Z")
     steps = list(rep["step_length"])
     if solver in ("pcgls", "direct") and steps and min(steps) < 0.25 and len(steps) < iterations + 1:
@@ -113,7 +116,8 @@ def solve_spacetime(setup: SpaceTimeSetup, X0, iterations: int = 8, cg_iteration
         # 27.4 -> 26.9, step 1/16, then no descent; Jacobi-scaled CGLS on J itself: 27.4 ->
         # 1.12 with full steps). Continue with CGLS from where the solve stalled.
         more = setup.problem.solve(np.ascontiguousarray(Z), max(1, iterations - len(steps) + 1),
-                                   cg_iterations, cg_tolerance, tolerance, "cgls", progress)
+                                   cg_iterations, cg_tolerance, tolerance, "cgls", progress,
+                                   jacobian_every)
         Z = more.pop("Z")
         for key in ("cost", "physics_cost"):
             rep[key] = list(rep[key]) + list(more[key])[1:]
