@@ -34,6 +34,18 @@ def residual_of(problem, ctx, params: dict, recs=None) -> np.ndarray:
     return marker_residual(problem, build_model(ctx, params), recs)
 
 
+def residual_pair(problem, ctx, params: dict, recs=None):
+    """(debiased, raw) train-marker residual of one simulation: `residual_of` and the same
+    residual before the discretisation discrepancy is removed (`debias`). The raw one tells how
+    much a family resembles the mesh's discretisation error (ranking.discretisation_credit): in
+    the debiased residual the discrepancy's direction is projected out (whenever the weight is
+    inside its range), so every family's debiased sensitivity is blind to it."""
+    recs = problem.train if recs is None else recs
+    model = build_model(ctx, params)
+    raw = stack_residuals(recs, lambda rec: predict(problem, model, rec, True), problem.object_size)
+    return debias(problem, raw, recs), raw
+
+
 def rest_offset(problem, rec) -> np.ndarray:
     """(K, 3) marker_rest minus the embedded point at rest. A marker slightly off a curved
     surface that the coarse mesh only approximates is attached to the closest surface point;
@@ -93,20 +105,27 @@ def gap(problem, model, fast: bool = False) -> dict:
 
 
 
-def sensitivities(problem, ctx, r0, names, step=0.1, progress=None):
-    """{family: (J (N x k), thetas)} by forward differences around theta = 0."""
-    out = {}
+def sensitivities(problem, ctx, r0, names, step=0.1, progress=None, raw0=None):
+    """{family: J (N x k)} by forward differences around theta = 0. raw0: the baseline's raw
+    (not debiased) residual; when given, returns ({family: J}, {family: J of the raw residual})
+    from the same simulations (residual_pair)."""
+    out, out_raw = {}, {}
     for name in names:
         k = len(FAMILIES[name].parameters)
         J = np.zeros((len(r0), k))
+        Jr = np.zeros((len(r0), k))
         for i in range(k):
             th = np.zeros(k)
             th[i] = step
-            J[:, i] = (residual_of(problem, ctx, {name: th}) - r0) / step
+            r, raw = residual_pair(problem, ctx, {name: th})
+            J[:, i] = (r - r0) / step
+            if raw0 is not None:
+                Jr[:, i] = (raw - raw0) / step
             if progress:
                 progress(f"sensitivity {name}[{i}]")
         out[name] = J
-    return out
+        out_raw[name] = Jr
+    return out if raw0 is None else (out, out_raw)
 
 
 def linear_fit(J: np.ndarray, r0: np.ndarray, max_step: float = 3.0):
