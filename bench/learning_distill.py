@@ -37,7 +37,8 @@ import numpy as np
 from matlearn.learning.distill import compare, correction_samples, simulation_samples, train_mlp
 from matlearn.learning.fit import RbfParams
 from matlearn.learning.io import mlp_correction
-from matlearn.learning.start import START_JSON, damping_from_dict, material_from_dict, with_parameters
+from matlearn.learning.start import (START_JSON, chosen_run, damping_from_dict, material_from_dict,
+                                     with_parameters)
 from matlearn.replay import initial_state, score, simulate_recording
 from matlearn.scene import load_scene
 
@@ -160,8 +161,9 @@ def main():
     for name in args.cases.split(","):
         t0 = time.time()
         scene = load_scene(Path(args.work) / "cases" / name / "scene.toml")
-        params, best, code = best_rbf(Path(args.work) / "runs" / name)
-        scene, start = run_scene(scene, Path(args.work) / "runs" / name)
+        run = chosen_run(Path(args.work) / "runs" / name)  # a --start best run: the kept start
+        params, best, code = best_rbf(run)
+        scene, start = run_scene(scene, run)
         failed_init = []
         if params is not None:  # (simulation_samples starts these from the nominal's held pose)
             for i, rec in enumerate(scene.recordings_with_role("train")):
@@ -207,7 +209,7 @@ def main():
             "hidden16_mlp_max_error_pct_test": test_errors(scene, wc),
             "train_recordings_failed_with_rbf": failed_init,
             "start": start, "rbf_centers": int(len(params.centers)), "rbf_damping": bool(len(params.alpha_weights)),
-            "rbf_source": f"{args.work}/runs/{name}, iteration {best['iteration']} (learning_table's "
+            "rbf_source": f"{run}, iteration {best['iteration']} (learning_table's "
                           f"test {best['test']['per_recording_max_pct']}), code fingerprint {code}",
             "code_commit": commit, "uncommitted_changes": bool(dirty),
             "uncommitted_core_files": core_dirty, "wall_s": time.time() - t0})

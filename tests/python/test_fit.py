@@ -347,3 +347,65 @@ def test_projected_linear_part_is_the_nearest_stable_one():
     # A stable linear part is left alone (up to the round-off floor).
     ok = project_linear_part(RbfParams(C, np.zeros((3, 3)), -0.5 * mu * np.eye(3), epsilon=0.01), mat, mu, lam)
     np.testing.assert_allclose(ok.linear, -0.5 * mu * np.eye(3), atol=1e-9)
+
+
+def test_linear_part_penalty_shrinks_the_global_modulus_change_and_is_off_at_zero():
+    # Exact forces of a 1/3 softer co-rotated truth: the free fit puts the change in the linear
+    # part A (a global modulus change); the linear penalty (fit.solve_fit `linear`, the tangent
+    # penalty applied to A) shrinks A monotonically towards 0, and weight 0 is the free fit.
+    from matlearn.learning.fit import fit_system, solve_fit
+
+    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
+    nominal = sc.model()
+    truth = _scene(Material("corotated", 2e5, 0.3, 1000.0)).model()
+    X, Vel = _frames(sc, truth, steps=90)
+    fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    system = fit_system(nominal, [FitFrames(X, Vel, fc, None, sc.fixed)], num_centers=12, damping=False)
+    M = system.modulus
+    norms = []
+    for w in (0.0, 0.1, 1.0, 1e6):
+        p, info = solve_fit(system, 1e-8, 1.0, w)
+        assert info["linear"] == w
+        norms.append(np.linalg.norm(p.linear) / M)
+    free, _ = solve_fit(system, 1e-8, 1.0)
+    assert np.array_equal(free.linear, solve_fit(system, 1e-8, 1.0, 0.0)[0].linear)
+    # the free fit finds the modulus change: the truth's tangent at rest minus the nominal's is
+    # -(1/3) of it, Frobenius norm ~0.4 M
+    mu_n, lam_n, mu_t, lam_t = nominal.mu[0], nominal.lam[0], truth.mu[0], truth.lam[0]
+    dT = 2 * (mu_t - mu_n) * np.eye(3) + (lam_t - lam_n) * np.ones((3, 3))
+    assert np.linalg.norm(free.linear - dT) < 0.15 * np.linalg.norm(dT)
+    assert norms[0] > norms[1] > norms[2] > norms[3]
+    assert norms[3] < 1e-3 * norms[0]
+
+
+def test_edge_penalty_flattens_the_rbf_slope_where_the_correction_is_extended():
+    # Noisy forces of a softer truth (as above): the unpenalised RBF part has a sizeable slope
+    # where a motion twice the fitted one leaves the centres' box, and the C1 extension carries
+    # that slope on without end. The edge penalty (fit.solve_fit `edge`) takes it down there
+    # while the fit inside the data barely changes.
+    from matlearn.learning.fit import fit_system, kernel_gradients, solve_fit
+
+    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
+    nominal = sc.model()
+    truth = _scene(Material("corotated", 2e5, 0.3, 1000.0)).model()
+    X, Vel = _frames(sc, truth, steps=90)
+    fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    fc = fc + 0.2 * np.sqrt(np.mean(fc**2)) * np.random.default_rng(1).standard_normal(fc.shape)
+    system = fit_system(nominal, [FitFrames(X, Vel, fc, None, sc.fixed)], num_centers=16, damping=False)
+    S = 1 + 2 * (system.samples - 1)
+    out = np.any((S < system.box[0]) | (S > system.box[1]), axis=1)
+    assert out.mean() > 0.05
+    edge_pts = np.clip(S[out], *system.box)
+
+    def edge_slope(p):
+        J = np.einsum("kc,ikb->icb", p.weights, kernel_gradients(edge_pts, p.centers, p.epsilon, p.box()))
+        return float(np.sqrt(np.mean(np.sum(J**2, axis=(1, 2))))) / system.modulus
+
+    free, i0 = solve_fit(system, 1e-10, 1e-3)
+    flat, i1 = solve_fit(system, 1e-10, 1e-3, edge=100.0)
+    assert i1["edge"] == 100.0
+    assert edge_slope(free) > 0.02
+    assert edge_slope(flat) < 0.2 * edge_slope(free), (edge_slope(flat), edge_slope(free))
+    # Measured: edge slope 0.30 -> 0.003 of the modulus, residual ratio 0.873 -> 0.877.
+    assert i1["residual_ratio"] < 1.1 * i0["residual_ratio"]
+    np.testing.assert_allclose(system.edge_penalty(), system.edge_penalty().T)

@@ -76,3 +76,65 @@ def test_cli_baseline_start_saves_the_fitted_parameters_and_simulate_reproduces_
     assert err == pytest.approx(learned, rel=1e-3, abs=1e-4)
     wrong = score(sc, partial, "test")["recordings"][0]["max_error_pct"]
     assert abs(wrong - learned) > 0.1 * learned
+
+
+def _fake_learn(train, test):
+    """A learn() stand-in: per start ('nominal' or 'baseline', told apart by the scene's E) a
+    fixed learned train and test max error."""
+    calls = []
+
+    def learn_fn(scene, run_dir, options, resume=False, log=None):
+        name = "nominal" if np.mean(scene.material.youngs_modulus) == pytest.approx(3.5e5) else "baseline"
+        calls.append((name, str(run_dir)))
+        fin = {"train": {"max_error_pct": train[name]},
+               "test": {"max_error_pct": max(test[name]), "per_recording_max_pct": test[name]}}
+        return {"final": fin, "nominal": fin, "metrics": [], "best_iteration": 1, "params": None}
+    return learn_fn, calls
+
+
+@pytest.mark.parametrize("train,chosen", [({"nominal": 0.13, "baseline": 0.20}, "nominal"),
+                                          ({"nominal": 0.20, "baseline": 0.13}, "baseline"),
+                                          ({"nominal": 0.20, "baseline": 0.20}, "baseline")])
+def test_best_start_keeps_the_lower_train_error_and_never_looks_at_the_test(case, tmp_path, monkeypatch,
+                                                                             train, chosen):
+    sc = load_scene(case)
+    fitted = {"material": sc.material.__class__("corotated", 2e5, 0.43, 1000.0),
+              "damping": sc.damping.__class__(0.0, 0.004), "evaluations": 1}
+    monkeypatch.setattr(start_mod, "fit_parameters", lambda *a, **k: fitted)
+    # the test errors always favour the start the train errors reject (ties: the nominal)
+    other = {"nominal": "baseline", "baseline": "nominal"}[chosen]
+    test = {chosen: [0.9, 0.9], other: [0.1, 0.1]}
+    learn_fn, calls = _fake_learn(train, test)
+    scene, info, res, run = start_mod.learn_best_start(sc, tmp_path / "run", learn_fn=learn_fn)
+    assert sorted(c[0] for c in calls) == ["baseline", "nominal"]
+    assert {c[1] for c in calls} == {str(tmp_path / "run" / "start_nominal"), str(tmp_path / "run" / "start_baseline")}
+    assert info["start"] == "best" and info["chosen"] == chosen
+    assert res["final"]["train"]["max_error_pct"] == train[chosen]
+    assert run == tmp_path / "run" / f"start_{chosen}" == start_mod.chosen_run(tmp_path / "run")
+    # the kept scene and the saved base parameters are those of the kept start
+    E = float(np.mean(scene.material.youngs_modulus))
+    assert E == pytest.approx(2e5 if chosen == "baseline" else 3.5e5)
+    assert ("material" in info) == (chosen == "baseline")
+    assert info["test_per_recording_max_pct"][chosen] == [0.9, 0.9]  # recorded, not used
+    assert start_mod.chosen_run(tmp_path / "elsewhere") == tmp_path / "elsewhere"
+
+
+def test_cli_best_start_keeps_the_lower_train_run_and_its_model_replays(case, tmp_path):
+    out = tmp_path / "run"
+    rc = cli.main(["learn", str(case), "--out", str(out), "--iterations", "1", "--modes", "10",
+                   "--centers", "8", "--no-distill", "--quiet", "--start", "best"])
+    assert rc == 0
+    best = json.loads((out / "best_start.json").read_text())
+    train = best["train_max_error_pct"]
+    assert best["chosen"] == min(train, key=train.get)
+    assert start_mod.chosen_run(out) == out / f"start_{best['chosen']}"
+    for name in ("nominal", "baseline"):  # each start ran in its own folder
+        metrics = json.loads((out / f"start_{name}" / "metrics.json").read_text())
+        assert min(m["train"]["max_error_pct"] for m in metrics["iterations"]) == pytest.approx(train[name])
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["start"] == "best" and ("base_material" in meta) == (best["chosen"] == "baseline")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["start"]["chosen"] == best["chosen"]
+    sc = load_scene(case)
+    learned = score(sc, scene_model(sc, out), "test")["recordings"][0]["max_error_pct"]
+    assert learned == pytest.approx(summary["final"]["test"]["max_error_pct"], rel=1e-6)

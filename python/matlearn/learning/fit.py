@@ -36,7 +36,8 @@ Regularisation (`smooth`): the fit minimises
 with J_rbf(s) = sum_k w_k grad g_k(s)^T the tangent of the RBF part at the fitted stretch
 samples s_i and M = 2 mu + lam the nominal P-wave modulus: a nonlinear stress correction whose
 tangent is a fraction t of the nominal stiffness costs smooth t^2 of the whole target energy.
-The linear part A (a global change of the moduli) is not penalised. Why: the stretches of a
+The linear part A (a global change of the moduli) is not penalised by `smooth` (see `linear`
+below). Why the RBF part is: the stretches of a
 recording span a few percent, the k-means centres are ~eps apart and the multiquadric kernels
 are nearly collinear there, so without it the normal matrix is numerically singular and the
 tiny column-scaled ridge left weights of ~1e6 Pa whose cancelling tangents exceeded the nominal
@@ -47,6 +48,23 @@ of the object size after a second iteration; a 1e-14 relative change of the weig
 by 5 %, i.e. chaotic, which is why two runs differing only in round-off gave 0.98 % and 337 %).
 The loop (`LearnOptions.smoothing`) picks the weight among a few candidates by the forward
 *train* error.
+
+Extrapolation penalties (`linear`, `edge`; candidates `EXTRAPOLATION_WEIGHTS`): the same
+tangent penalty on the linear part A (linear |y|^2 |A|_F^2 / M^2) and on the RBF part's slope at
+the points where a motion twice the fitted one leaves the centres' box (edge |y|^2 mean
+|J_rbf(edge)|^2 / M^2, `FitSystem.edge_penalty`: the slope the C1 extension continues with).
+Both act only where the data are silent. Where the recordings do not fix the stress scale, A runs
+along that near-null direction: on the displacement-driven tension sphere (bench/learning_table.py,
+cap keyframed, quasi-static) the free fits removed 60-100 % of the nominal P-wave modulus (A/M
+about -0.8 on the diagonal, -0.6 off it), and without the guard every one of them would have
+raised the forward train error from 1.55 % to 2.4-3.4 %. With A penalised (weight 1) the same control
+forces give 1.19-1.31 %, but the RBF then meets the truth's softening bump (negative tangent at
+stretch 1.14-1.2) at the box edge and its extension softens without end (tangent margin -0.2:
+rejected); with the edge slope penalised too (weight 10) the margin is +0.03..0.07 and the train
+error 1.21-1.29 %. The softening inside the data stays allowed (tangent_margin checks only beyond
+the box). Where the modulus is wrong and identified (the turtle: -43 % of E) a penalised A would
+be biased towards no change, so the free and the penalised family are both candidates and the
+forward train error chooses.
 """
 from __future__ import annotations
 
@@ -55,6 +73,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import _core
+
+
+# (linear, edge) extrapolation-penalty candidates per smoothing weight: free, and penalised
+# (module docstring; LearnOptions.extrapolation)
+EXTRAPOLATION_WEIGHTS = ((0.0, 0.0), (1.0, 10.0))
 
 
 @dataclass
@@ -197,6 +220,7 @@ class FitSystem:
     seed: int
     max_penalty_samples: int
     _penalty: np.ndarray | None = None
+    _edge: np.ndarray | None = None
 
     def penalty(self) -> np.ndarray:
         """Pk (c, c): mean over the (subsampled) fitted stretches of grad g_k . grad g_l, so that
@@ -209,6 +233,25 @@ class FitSystem:
             G = kernel_gradients(S, self.centers, self.epsilon, self.box)
             self._penalty = np.einsum("ikb,ilb->kl", G, G) / len(S)
         return self._penalty
+
+    def edge_penalty(self) -> np.ndarray:
+        """Pe (c, c): as `penalty`, at the points where a motion twice the fitted one
+        (extension_probes) leaves the centres' box, i.e. of the slope with which the RBF part
+        is extended beyond the data (zeros when nothing leaves the box; cached)."""
+        if self._edge is None:
+            c = len(self.centers)
+            S = 1.0 + 2.0 * (self.samples - 1.0)
+            if len(S) > self.max_penalty_samples:
+                S = S[np.random.default_rng(self.seed).choice(len(S), self.max_penalty_samples,
+                                                              replace=False)]
+            self._edge = np.zeros((c, c))
+            if self.box[0] is not None:
+                out = np.any((S < self.box[0]) | (S > self.box[1]), axis=1)
+                if out.any():
+                    E = np.clip(S[out], self.box[0], self.box[1])
+                    G = kernel_gradients(E, self.centers, self.epsilon, self.box)
+                    self._edge = np.einsum("ikb,ilb->kl", G, G) / len(E)
+        return self._edge
 
 
 def fit_system(nominal_model, frames: list, num_centers: int = 24, current_model=None,
@@ -254,10 +297,12 @@ def fit_system(nominal_model, frames: list, num_centers: int = 24, current_model
                      modulus, seed, max_penalty_samples)
 
 
-def solve_fit(system: FitSystem, ridge: float = 1e-6, smooth: float = 0.0) -> tuple[RbfParams, dict]:
+def solve_fit(system: FitSystem, ridge: float = 1e-6, smooth: float = 0.0,
+              linear: float = 0.0, edge: float = 0.0) -> tuple[RbfParams, dict]:
     """The regularised least-squares solve of an assembled system (module docstring): ridge
     relative to the mean diagonal of the column-normalised normal matrix, smooth the weight of
-    the tangent penalty of the RBF part. Returns (params, info)."""
+    the tangent penalty of the RBF part, linear the same penalty on the linear part A (the
+    correction's global tangent: linear |y|^2 |A|_F^2 / M^2; 0: A free). Returns (params, info)."""
     s = system
     C, eps, c = s.centers, s.epsilon, len(s.centers)
     N, rhs, yy = s.N, s.rhs, s.yy
@@ -266,12 +311,17 @@ def solve_fit(system: FitSystem, ridge: float = 1e-6, smooth: float = 0.0) -> tu
     scale = np.sqrt(np.maximum(np.diag(N), 1e-300))
     Ns = N / scale[:, None] / scale[None]
     reg = ridge * np.trace(Ns) / p
-    if smooth > 0:
+    if smooth > 0 or linear > 0 or edge > 0:
         Pen = np.zeros((p, p))
         for a in range(3):
             sl = slice(a * (c + 3), a * (c + 3) + c)
-            Pen[sl, sl] = s.penalty()
-        Pen *= smooth * yy / s.modulus**2
+            if smooth > 0:
+                Pen[sl, sl] = smooth * s.penalty()
+            if edge > 0:
+                Pen[sl, sl] += edge * s.edge_penalty()
+            sa = slice(a * (c + 3) + c, (a + 1) * (c + 3))
+            Pen[sa, sa] = linear * np.eye(3)
+        Pen *= yy / s.modulus**2
         Ns = Ns + Pen / scale[:, None] / scale[None]
     theta = np.linalg.solve(Ns + reg * np.eye(p), rhs / scale) / scale
     res2 = max(yy - 2 * theta @ rhs + theta @ N @ theta, 0.0)
@@ -285,7 +335,8 @@ def solve_fit(system: FitSystem, ridge: float = 1e-6, smooth: float = 0.0) -> tu
         wa, a0 = np.zeros(0), 0.0
     params = RbfParams(C, W, A, bias, wa, a0, eps, s.clamp)
     info = {"residual_ratio": float(np.sqrt(res2 / yy)) if yy > 0 else 0.0, "frames": s.count,
-            "parameters": p, "centers": c, "epsilon": eps, "smooth": smooth}
+            "parameters": p, "centers": c, "epsilon": eps, "smooth": smooth, "linear": linear,
+            "edge": edge}
     return params, info
 
 

@@ -85,10 +85,13 @@ class LearnOptions:
     Gauss-Newton steps per space-time solve; pod_window: fraction of each trajectory used for
     the basis; fit_frames: max frames per recording in the fit; smoothing: weights of the
     fit's tangent penalty (fit.py: the RBF part's tangent relative to the nominal modulus)
-    and ridges: relative numerical Tikhonov weights; every (smoothing, ridge) pair is a
-    candidate per iteration (the best train error wins; when none is stable and simulable, up
-    to `escalate` more with 10x, 100x the largest smoothing weight are tried before the update
-    is shortened); ridge_search: "all" (fit and
+    and ridges: relative numerical Tikhonov weights; extrapolation: (linear, edge) weight
+    pairs of the penalties on what the correction does beyond the data (fit.solve_fit: the
+    linear part A and the RBF part's slope where it leaves the data; (0, 0): none;
+    fit.EXTRAPOLATION_WEIGHTS adds a penalised family, bench/learning_table.py); every
+    (extrapolation, smoothing, ridge) triple is a candidate per iteration (the best train
+    error wins; when none is stable and simulable, up to `escalate` more with 10x, 100x the
+    largest smoothing weight are tried before the update is shortened); ridge_search: "all" (fit and
     forward-simulate every candidate) or "first" (in the given order, stop at the first
     whose train error is lower than the current one: one fit + one forward simulation per
     iteration instead of one per candidate, for large cases, bench/learning_scale.py); patience: iterations without
@@ -132,6 +135,7 @@ class LearnOptions:
     backtrack: tuple = (0.5, 0.25)
     track: TrackOptions | None = None
     smoothing: tuple = (1e-3, 1e-2, 1e-1, 1.0)
+    extrapolation: tuple = ((0.0, 0.0),)
     escalate: int = 2
     tangent_stride: int = 1
     refresh_correspondences: int = 0
@@ -153,6 +157,9 @@ class LearnOptions:
         self.smoothing = tuple(float(t) for t in self.smoothing)
         if not self.smoothing or any(not t >= 0 for t in self.smoothing):
             raise ValueError(f"smoothing: at least one weight, all >= 0, got {self.smoothing}")
+        self.extrapolation = tuple((float(a), float(b)) for a, b in self.extrapolation)
+        if not self.extrapolation or any(not (a >= 0 and b >= 0) for a, b in self.extrapolation):
+            raise ValueError(f"extrapolation: at least one (linear, edge) pair, all >= 0, got {self.extrapolation}")
         if self.tangent_stride < 1:
             raise ValueError(f"tangent_stride must be >= 1, got {self.tangent_stride}")
         if self.refresh_correspondences < 0:
@@ -574,21 +581,23 @@ class Learner:
         system = fit_system(self.nominal, frames, opt.centers,
                             current_model=current_model if params is not None else None,
                             damping=opt.damping, seed=opt.seed + k, centers=centers)
-        pairs = [(r, s) for s in opt.smoothing for r in opt.ridges]
+        # (ridge, smoothing, (linear, edge) extrapolation penalties), in the order of the options
+        pairs = [(r, s, x) for x in opt.extrapolation for s in opt.smoothing for r in opt.ridges]
+        planned = len(pairs)
         while pairs:
-            ridge, smooth = pairs.pop(0)
-            p, info = solve_fit(system, ridge, smooth)
-            info["ridge"], info["smooth"] = ridge, smooth
+            ridge, smooth, extra = pairs.pop(0)
+            p, info = solve_fit(system, ridge, smooth, *extra) if any(extra) else solve_fit(system, ridge, smooth)
+            info["ridge"], info["smooth"], info["extrapolation"] = ridge, smooth, list(extra)
             err, errs, sims, info["tangent_margin"] = evaluate(p, check_bound())
             info["train_max_error_pct"] = float(err)
             info["stopped_early"] = bool(np.isfinite(err) and sims is None)
             cands.append((err, -info["tangent_margin"], len(cands), p, info, errs, sims))
             if opt.ridge_search == "first" and err < current_err:
                 break
-            escalated = len(cands) - len(opt.smoothing) * len(opt.ridges)
+            escalated = len(cands) - planned
             if not pairs and escalated < opt.escalate and not any(np.isfinite(c[0]) for c in cands):
                 # No candidate is stable (or simulable): smooth harder (x10) before shortening.
-                pairs = [(opt.ridges[0], 10.0 * max(c[4]["smooth"] for c in cands))]
+                pairs = [(opt.ridges[0], 10.0 * max(c[4]["smooth"] for c in cands), max(opt.extrapolation))]
         if not any(np.isfinite(c[0]) for c in cands) and opt.ridge_search == "all":
             # Still none: the global linear part itself destabilises. Project the most stable
             # candidate's linear part so that the total tangent at rest is positive
@@ -603,6 +612,7 @@ class Learner:
         cands_best = min(cands, key=lambda c: (c[0], c[1], c[2]))
         err, _, _, p, info, errs, sims = cands_best
         info["ridge_candidates"] = [{"ridge": c[4]["ridge"], "smooth": c[4]["smooth"],
+                                     "extrapolation": c[4]["extrapolation"],
                                      "tangent_margin": c[4]["tangent_margin"],
                                      "train_max_error_pct": float(c[0]),
                                      "stopped_early": c[4].get("stopped_early", False)} for c in cands]
