@@ -8,7 +8,11 @@ stiffness refit (the stateless reference). Then let the material change with the
   plastic set, ageing);
 * in time: the second half of every recording gets its own stiffness scale and
   stiffness-damping shift (softening or yielding during the motion, loops that differ in
-  loading and unloading, a friction whose relative damping grows as the amplitude decays).
+  loading and unloading, a friction whose relative damping grows as the amplitude decays);
+* in the equilibrium: every recording gets its own constant marker offset in the body's 3 main
+  displacement patterns (a permanent set shifts the equilibrium a recording oscillates about),
+  where the stateless models share one (their static error is the same in every recording).
+  Used only when every recording spans OFFSET_PERIODS periods of the dominant oscillation.
 History dependence is detected (`decide`) when this history model
 1. cuts (rss + floor) of the stateless reference by the factor a further effect must reach,
 2. is preferred by the score (BIC: it pays for its K + 1 parameters), and
@@ -24,8 +28,8 @@ History dependence is detected (`decide`) when this history model
    starts.
 Reported as outside the library: a correction N(Fh, Fhdot) cannot learn it.
 
-Limitations: a pure change of rest shape (plastic set without stiffness change) shows up only
-through the stiffness proxy; two halves is the coarsest split in time; with two train
+Limitations: a set formed before the first recording is indistinguishable from another rest
+shape; two halves is the coarsest split in time; with two train
 recordings of different amplitudes a body damaged by the larger one and a stateless softening
 differ only within recordings (the damaged body stays soft as the motion decays), so a weak
 history effect is not claimed.
@@ -110,6 +114,55 @@ def _simulate_split(problem, m1, m2, rec):
     return replay.interpolate_frames(sim_t, emb.apply(X), rec.times)
 
 
+OFFSET_PERIODS = 1.5  # a constant offset absorbs <= 2 / (pi n)^2 = 9 % of an oscillation over n = 1.5 periods
+
+
+def _offset_basis(recs, modes=3):
+    """Per recording, the (n_k, modes) marker-space columns of a constant displacement in each
+    of the body's `modes` main displacement patterns (right singular vectors of the observed
+    marker displacements of all recordings), in the residual's layout. A permanent set shifts
+    the equilibrium a recording oscillates about, inside the span of how the body moves.
+    None when the recordings do not share one marker set."""
+    try:
+        M = {int(np.asarray(r.marker_rest).shape[0]) for r in recs}
+        if len(M) != 1:
+            return None
+        D = np.concatenate([np.nan_to_num(np.asarray(r.markers, float) - np.asarray(r.marker_rest, float)[None])
+                            .reshape(len(r.times), -1) for r in recs])
+    except (AttributeError, ValueError):
+        return None
+    if not np.any(D):
+        return None
+    V = np.linalg.svd(D, full_matrices=False)[2][:modes]
+    out = []
+    for r in recs:
+        seen = np.asarray(r.seen, bool)
+        cols = [np.broadcast_to(v.reshape(-1, 3), (len(r.times),) + (seen.shape[1], 3))[seen].ravel()
+                for v in V]
+        out.append(np.stack(cols, axis=1))
+    return out
+
+
+def _projector(basis, per_recording):
+    """parts -> parts with constant marker offsets in `basis` profiled out (least squares): one
+    set of coefficients per recording (the history model) or one shared by all (the stateless
+    reference: a static error of a stateless model, e.g. a wrong sag, is the same in every
+    recording). Identity when basis is None."""
+    if basis is None:
+        return lambda parts: parts
+    if per_recording:
+        def proj(parts):
+            return [q - B @ np.linalg.lstsq(B, q, rcond=None)[0] for q, B in zip(parts, basis)]
+        return proj
+    B = np.concatenate(basis)
+    sizes = np.cumsum([len(b) for b in basis])[:-1]
+
+    def proj(parts):
+        r = np.concatenate(parts)
+        return np.split(r - B @ np.linalg.lstsq(B, r, rcond=None)[0], sizes)
+    return proj
+
+
 def _lm(fun, x, free, K, iterations=2, step=0.07, stop=-1.0):
     """Gauss-Newton (Levenberg-damped, step-limited) over the entries `free` of x for
     fun(x, only, base) -> per-recording residuals (entries 1..K-1 of x touch only their own
@@ -143,16 +196,21 @@ def _lm(fun, x, free, K, iterations=2, step=0.07, stop=-1.0):
     return x, parts, cost
 
 
-def _gauss_newton(problem, ctx, params, recs, x, free, iterations=2, step=0.07):
+def _gauss_newton(problem, ctx, params, recs, x, free, iterations=2, step=0.07, proj=None):
     """The history model x = [shared stiffness, per-recording shifts, late stiffness, late
-    damping] fitted over the entries `free` (_lm). Returns (x, per-recording residuals, rss)."""
+    damping] fitted over the entries `free` (_lm), `proj` (per-recording, or None) profiling
+    out marker offsets. Returns (x, per-recording residuals, rss)."""
+    proj = proj or (lambda parts: parts)
+
     def fun(x, only, base):
-        return _residual(problem, ctx, params, x, recs, only, base)
+        if only is None:
+            return proj(_residual(problem, ctx, params, x, recs))
+        return proj(_residual(problem, ctx, params, x, recs, only, base))
 
     return _lm(fun, x, free, len(recs), iterations, step)
 
 
-def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, stop=-1.0):
+def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, stop=-1.0, proj=None):
     """A library family added to the stateless reference, refitted by simulation together with
     the shared stiffness, on exactly the residual the history model is judged on. An
     oscillation's accumulated phase makes the fit multimodal, and a linearisation about the
@@ -163,6 +221,7 @@ def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, st
     Returns rss."""
     K = len(recs)
     k = len(theta0)
+    proj = proj or (lambda parts: parts)
 
     def fun_of(share):
         def fun(x, only, base):
@@ -170,7 +229,7 @@ def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, st
             p[name] = list(x[K + 2:])
             y = np.zeros(K + 2)
             y[0] = x[0]
-            parts = _residual(problem, ctx, p, y, recs)
+            parts = proj(_residual(problem, ctx, p, y, recs))
             return parts if share >= 1 else [q[: max(1, int(share * len(q)))] for q in parts]
         return fun
 
@@ -190,9 +249,10 @@ def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, st
     return best
 
 
-def decide(ref, cost, alternatives, n, dof, K, rss_floor, add_factor=0.6):
+def decide(ref, cost, alternatives, n, dof, K, rss_floor, add_factor=0.6, extra=None):
     """The decision on fitted residuals: `ref` the stateless reference's rss (dof parameters),
-    `cost` the history model's (dof + K + 1), `alternatives` {family: (rss, parameters)} of the
+    `cost` the history model's (dof + extra, default K + 1), `alternatives` {family: (rss,
+    parameters)} of the
     reference plus one library family each (the stateless rivals). History dependence needs
     1. a cut of (rss + floor) to add_factor (what any further effect must reach),
     2. a lower BIC than the reference, and
@@ -201,7 +261,7 @@ def decide(ref, cost, alternatives, n, dof, K, rss_floor, add_factor=0.6):
     Returns (detected, name of the best rival or None)."""
     from .fitting import score
 
-    s_hist = score(cost, dof + K + 1, n, rss_floor)
+    s_hist = score(cost, dof + (K + 1 if extra is None else extra), n, rss_floor)
     ok = cost + rss_floor < add_factor * (ref + rss_floor) and s_hist < score(ref, dof, n, rss_floor)
     best = None
     for name, (rss, k) in alternatives.items():
@@ -226,14 +286,26 @@ def check(problem, ctx, selected, rss_floor, say=None, add_factor=0.6, stateless
     recs = problem.train
     K = len(recs)
     x = np.zeros(K + 2)
-    x_ref, parts_ref, ref = _gauss_newton(problem, ctx, params, recs, x, [0])
+    # constant marker offsets in the body's main displacement patterns: shared by all recordings
+    # in every stateless model, one set per recording in the history model (a permanent set)
+    # (only where every recording spans OFFSET_PERIODS periods of the dominant oscillation: over a
+    # shorter window an oscillation's mean is not small, and offsets would absorb it)
+    periods = min(float(r.times[-1] - r.times[0]) for r in recs) * ctx.omega / (2 * np.pi)
+    basis = _offset_basis(recs) if periods >= OFFSET_PERIODS else None
+    shared, per = _projector(basis, False), _projector(basis, True)
+    n_modes = 0 if basis is None else basis[0].shape[1]
+    # (the stiffness first without the offsets: profiling them out changes the landscape, and a
+    # reference stuck in a side valley would hand the history model a false gain)
+    x, _, _ = _gauss_newton(problem, ctx, params, recs, x, [0])
+    x_ref, parts_ref, ref = _gauss_newton(problem, ctx, params, recs, x, [0], proj=shared)
     nothing = {"detected": False, "explained": 0.0, "score": 0.0, "parameters": {}, "reference": params}
     if ref <= rss_floor:  # nothing left beyond noise and discretisation
         return nothing
     free = list(range(K + 2))
-    x_h, _, cost = _gauss_newton(problem, ctx, params, recs, x_ref.copy(), free)
+    x_h, _, cost = _gauss_newton(problem, ctx, params, recs, x_ref.copy(), free, proj=per)
     n = float(sum(len(rec.times) for rec in recs))
-    dof = sum(len(v) for v in params.values()) + 1
+    dof = sum(len(v) for v in params.values()) + 1 + n_modes
+    extra = K + 1 + n_modes * (K - 1)
     gain = ref - cost
     r_ref = np.concatenate(parts_ref)
     lin = {}
@@ -246,14 +318,15 @@ def check(problem, ctx, selected, rss_floor, say=None, add_factor=0.6, stateless
     # residual, refitted by simulation (a linearisation about the nominal model can be far off
     # either way for damping or nonlinearity families); only needed when the history model
     # passes the other criteria
-    passes = decide(ref, cost, {}, n, dof, K, rss_floor, add_factor)[0]
+    passes = decide(ref, cost, {}, n, dof, K, rss_floor, add_factor, extra)[0]
     cands = sorted(lin, key=lambda nm: lin[nm][1])[:rivals] if passes else []
     alternatives = {}
     for name in cands:
         k = len(lin[name][0]) + (1 if name == "heterogeneity" else 0)
-        alternatives[name] = (_stateless(problem, ctx, params, x_ref, recs, name, lin[name][0], stop=cost), k)
-    detected, best_name = decide(ref, cost, alternatives, n, dof, K, rss_floor, add_factor)
-    s_hist = score(cost, dof + K + 1, n, rss_floor)
+        alternatives[name] = (_stateless(problem, ctx, params, x_ref, recs, name, lin[name][0], stop=cost,
+                                         proj=shared), k)
+    detected, best_name = decide(ref, cost, alternatives, n, dof, K, rss_floor, add_factor, extra)
+    s_hist = score(cost, dof + extra, n, rss_floor)
     if say:
         alt = ", ".join(f"{nm} {v[0]:.3e} (linearised {lin[nm][1]:.3e})" for nm, v in alternatives.items())
         say(f"history check: stateless rss {ref:.3e} -> {cost:.3e} with history parameters {np.round(x_h, 3)};"
