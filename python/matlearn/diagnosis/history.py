@@ -17,7 +17,8 @@ History dependence is detected (`decide`) when this history model
 1. cuts (rss + floor) of the stateless reference by the factor a further effect must reach,
 2. is preferred by the score (BIC: it pays for its K + 1 parameters), and
 3. beats, in residual and in BIC, every stateless rival: the reference plus one library family
-   (the two with the largest linearised gain), refitted *by simulation* on the very residual
+   (the two with the largest linearised gain, and Rayleigh damping whenever the late damping
+   shift is used), refitted *by simulation* on the very residual
    the history model is judged on. The history model also absorbs stateless errors (a missed
    amplitude-dependent stiffness looks like a different stiffness in a larger recording, a
    missed damping like a late damping shift), so it must explain the data better than a
@@ -320,6 +321,10 @@ def check(problem, ctx, selected, rss_floor, say=None, add_factor=0.6, stateless
     # passes the other criteria
     passes = decide(ref, cost, {}, n, dof, K, rss_floor, add_factor, extra)[0]
     cands = sorted(lin, key=lambda nm: lin[nm][1])[:rivals] if passes else []
+    # a missed viscous damping grows the residual with time, which the late-half damping shift
+    # mimics: the library's damping family is always a rival when that shift is used
+    if passes and "rayleigh_damping" in lin and "rayleigh_damping" not in cands and abs(x_h[K + 1]) > 0.1:
+        cands.append("rayleigh_damping")
     alternatives = {}
     for name in cands:
         k = len(lin[name][0]) + (1 if name == "heterogeneity" else 0)
