@@ -57,33 +57,3 @@ def test_sensitivities_return_the_raw_jacobian_from_the_same_simulations(monkeyp
     np.testing.assert_allclose(J_raw["stiffness_scale"][:, 0], b, atol=1e-9)
     assert np.abs(J["stiffness_scale"]).max() < 1e-9  # pure discrepancy: debiased away
     assert isinstance(fitting.sensitivities(prob, None, r0, ["stiffness_scale"]), dict)
-
-
-def test_scan_moves_the_discretisation_offset_with_the_family(monkeypatch):
-    """A family whose effect is mostly cancelled by a compensating offset (a lower Poisson ratio
-    softens the model): every grid point alone is worse than the baseline, with the offset that
-    goes with it (pipeline._offset_for, linearised and clipped) the scan finds the basin."""
-    from matlearn.diagnosis import pipeline
-    from matlearn.diagnosis.effects import NUISANCE
-
-    rng = np.random.default_rng(5)
-    e, j_o = rng.standard_normal(50), rng.standard_normal(50)
-    j_f = 2.0 * j_o + 0.2 * e  # the family's effect is mostly a stiffness change
-    t_true = -0.6
-    c_true = -2.0 * t_true
-    r_base = -(j_f * t_true + j_o * c_true)  # the truth: family at t_true, offset at c_true
-
-    def residual_of(problem, ctx, params, recs=None):
-        t = float(np.asarray(params.get("poisson_ratio", [0.0]))[0])
-        c = float(np.asarray(params.get(NUISANCE, [0.0]))[0])
-        return r_base + j_f * t + j_o * c
-
-    monkeypatch.setattr(fitting, "residual_of", residual_of)
-    alone = fitting.scan(None, None, "poisson_ratio", 0.0, r_base)
-    assert alone[0] == 0.0  # nothing on the grid beats the baseline without the offset
-    offset_of = pipeline._offset_for(j_f, j_o, r_base, (-3.0, 3.0))
-    assert offset_of(t_true) == pytest.approx(c_true, abs=1e-9)
-    assert pipeline._offset_for(j_f, j_o, r_base, (-0.5, 0.5))(t_true) == 0.5  # clipped to its range
-    start = fitting.scan(None, None, "poisson_ratio", 0.0, r_base, offset_of=offset_of)
-    assert start["poisson_ratio"][0] == pytest.approx(t_true)
-    assert start[NUISANCE][0] == pytest.approx(c_true)

@@ -195,27 +195,18 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
     return Fit("+".join(names), unpack(x), cost, dof, evals, hist)
 
 
-def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-2.4, -1.2, -0.6, -0.3, 0.3, 0.6, 1.2),
-         offset_of=None):
+def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-2.4, -1.2, -0.6, -0.3, 0.3, 0.6, 1.2)) -> np.ndarray:
     """Best of the linearised estimate and a coarse grid of a 1-parameter family (simulated),
     as the start of the local refinement. The grid reaches large changes (a Poisson ratio
     0.24 lower, a stiffness 3x higher or 11x lower): an oscillation's phase makes the residual
-    multimodal, so a large true change is not reached by local steps from a small one.
-    offset_of: for a family fitted with the discretisation offset (NUISANCE), t -> the offset
-    that goes with t (linearised, inside its range): a lower Poisson ratio softens the model,
-    and without the offset that compensates every grid point can be worse than the baseline.
-    Returns theta (1,), or with offset_of the start {name: theta, NUISANCE: offset}."""
-    best = (float(r0 @ r0), np.zeros(1), 0.0)
+    multimodal, so a large true change is not reached by local steps from a small one."""
+    best = (float(r0 @ r0), np.zeros(1))
     for t in [float(np.asarray(theta_cheap).ravel()[0])] + list(grid):
-        off = 0.0 if offset_of is None else float(offset_of(t))
-        params = {name: [t]} if offset_of is None else {name: [t], NUISANCE: [off]}
-        r = residual_of(problem, ctx, params)
+        r = residual_of(problem, ctx, {name: [t]})
         c = float(r @ r)
         if c < best[0]:
-            best = (c, np.array([t]), off)
-    if offset_of is None:
-        return best[1]
-    return {name: best[1], NUISANCE: np.array([best[2]])}
+            best = (c, np.array([t]))
+    return best[1]
 
 
 def score(rss: float, dof: int, n_eff: float, rss_floor: float) -> float:

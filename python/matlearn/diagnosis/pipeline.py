@@ -151,11 +151,11 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     J["heterogeneity"] = np.stack([Jp[:, sel].sum(axis=1), Jp[:, ~sel].sum(axis=1)], axis=1)
     J_raw["heterogeneity"] = np.stack([Jp_raw[:, sel].sum(axis=1), Jp_raw[:, ~sel].sum(axis=1)], axis=1)
     say(f"sensitivities done ({P.simulations} simulations); region {int(ctx.region.sum())} tets")
-    cheap, cheap_offset = {}, {}
+    cheap = {}
     nuis = (ctx.offset_range[0] - ctx.offset_applied, ctx.offset_range[1] - ctx.offset_applied)
     for name, Jn in J.items():
         if name in WITH_NUISANCE:  # jointly with the bounded discretisation offset
-            th, rss, cheap_offset[name] = _linear_fit_nuisance(Jn, J["stiffness_scale"][:, 0], r0, nuis)
+            th, rss = _linear_fit_nuisance(Jn, J["stiffness_scale"][:, 0], r0, nuis)
         else:
             th, rss = fitting.linear_fit(Jn, r0)
         cheap[name] = (th, rss)
@@ -188,15 +188,9 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     to_refine.sort(key=lambda n: n in NESTS)  # the nested (smaller) family first
     for name in to_refine:
         start = {name: cheap[name][0]}
-        if name in cheap_offset:  # the offset the linear fit found with it, not the baseline's
-            start[NUISANCE] = np.array([cheap_offset[name]])
         if len(FAMILIES[name].parameters) == 1:
             # oscillation phases make 1-parameter scale fits multimodal: scan before refining
-            if name in cheap_offset:
-                offset_of = _offset_for(J[name][:, 0], J["stiffness_scale"][:, 0], r0, nuis)
-                start = fitting.scan(P, ctx, name, cheap[name][0], r0, offset_of=offset_of)
-            else:
-                start = {name: fitting.scan(P, ctx, name, cheap[name][0], r0)}
+            start = {name: fitting.scan(P, ctx, name, cheap[name][0], r0)}
         names = [name] + ([NUISANCE] if name in WITH_NUISANCE else [])
         fits[name] = fitting.refine(P, ctx, names, start, iterations=2, progress=say, r_zero=r0)
         if name in NESTS and NESTS[name][0] in fits:
@@ -351,27 +345,14 @@ def _safe_gap(P, ctx, params, fast=False):
 def _linear_fit_nuisance(Jn, j_offset, r0, bounds):
     """Linear fit of a family together with the discretisation offset column, the offset kept
     inside its plausible range `bounds` (clipped, the family refit with the offset fixed).
-    Returns (family theta, predicted rss, offset theta)."""
+    Returns (family theta, predicted rss)."""
     th, rss = fitting.linear_fit(np.column_stack([Jn, j_offset]), r0)
     t_off = float(np.clip(th[-1], *bounds))
     if t_off != th[-1]:
         r_fixed = r0 + j_offset * t_off
         th_f, rss = fitting.linear_fit(Jn, r_fixed)
-        return th_f, rss, t_off
-    return th[:-1], rss, t_off
-
-
-def _offset_for(j_family, j_offset, r0, bounds):
-    """t -> the discretisation offset that best goes with a 1-parameter family at t (linearised:
-    least squares of r0 + j_family t + j_offset c over c, clipped to `bounds`)."""
-    jj = float(j_offset @ j_offset)
-
-    def offset_of(t):
-        if jj <= 0.0:
-            return 0.0
-        return float(np.clip(-float(j_offset @ (r0 + j_family * t)) / jj, *bounds))
-
-    return offset_of
+        return th_f, rss
+    return th[:-1], rss
 
 
 def _dof(name):
