@@ -23,11 +23,12 @@ baseline start); the test recordings are never consulted. Why: neither start dom
 fitted start the remaining error is a small nonlinearity, and with sparse markers the space-time
 control forces identify it poorly: on the StVK "dragon" (6 % markers) they correlate only 0.67
 with the true force difference at the same trajectory, and every fitted update raises the train
-error from 0.25 % to 0.85-0.94 % (a fit of the true force difference reaches 0.15 % in one
-step), so the loop creeps on by shortened steps and ends at 0.20 % train; from the nominal start
+error from 0.25 % to 0.79-0.94 % (a fit of the true force difference reaches 0.15 % in one
+step), so the loop creeps on by shortened steps and ends at 0.19 % train; from the nominal start
 the 20 % modulus error dominates the control forces and the loop reaches 0.13 % train
-(bench/results/learning_table_nominal_start.json). On most other cases the fitted start ends
-lower. RUN/best_start.json records both train errors and the choice.
+(bench/results/learning_table_nominal_start.json). bench/results/learning_table.json keeps the
+nominal start on the turtle, the StVK bar and both spheres, and the fitted start on the damping
+bars and the layered bar. RUN/best_start.json records both train errors and the choice.
 """
 from __future__ import annotations
 
