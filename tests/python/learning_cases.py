@@ -30,3 +30,19 @@ def nominal_energy(sc, model, x, v) -> float:
     psi = np.asarray(_core.fem.principal_energy(sc.material.model, Fh, mu, lam, []))
     m = np.asarray(model.vertex_mass)
     return float(psi @ np.asarray(sc.mesh.rest_volumes) + 0.5 * (m * (v**2).sum(1)).sum())
+
+
+def scaled_fit(factor):
+    """A stand-in for learning.loop.solve_fit that returns the real fit scaled by `factor`
+    (elastic and damping parts): a wrong-way (< 0) or overshooting (> 1) update for loop tests;
+    install it with monkeypatch.setattr(loop, "solve_fit", scaled_fit(f))."""
+    from matlearn.learning import loop
+
+    real = loop.solve_fit
+
+    def fit(*args, **kw):
+        p, info = real(*args, **kw)
+        p.weights, p.linear, p.bias = factor * p.weights, factor * p.linear, factor * p.bias
+        p.alpha_weights, p.alpha_bias = factor * p.alpha_weights, factor * p.alpha_bias
+        return p, info
+    return fit

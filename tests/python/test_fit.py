@@ -349,17 +349,24 @@ def test_projected_linear_part_is_the_nearest_stable_one():
     np.testing.assert_allclose(ok.linear, -0.5 * mu * np.eye(3), atol=1e-9)
 
 
+def _softer_truth_forces(steps=90):
+    """A co-rotated bar whose truth is 1/3 softer than its nominal model: the scene, both
+    models, the truth's motion (X, Vel) and the exact force difference truth - nominal per frame."""
+    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
+    nominal = sc.model()
+    truth = _scene(Material("corotated", 2e5, 0.3, 1000.0)).model()
+    X, Vel = _frames(sc, truth, steps=steps)
+    fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    return sc, nominal, truth, X, Vel, fc
+
+
 def test_linear_part_penalty_shrinks_the_global_modulus_change_and_is_off_at_zero():
     # Exact forces of a 1/3 softer co-rotated truth: the free fit puts the change in the linear
     # part A (a global modulus change); the linear penalty (fit.solve_fit `linear`, the tangent
     # penalty applied to A) shrinks A monotonically towards 0, and weight 0 is the free fit.
     from matlearn.learning.fit import fit_system, solve_fit
 
-    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
-    nominal = sc.model()
-    truth = _scene(Material("corotated", 2e5, 0.3, 1000.0)).model()
-    X, Vel = _frames(sc, truth, steps=90)
-    fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    sc, nominal, truth, X, Vel, fc = _softer_truth_forces()
     system = fit_system(nominal, [FitFrames(X, Vel, fc, None, sc.fixed)], num_centers=12, damping=False)
     M = system.modulus
     norms = []
@@ -385,11 +392,7 @@ def test_edge_penalty_flattens_the_rbf_slope_where_the_correction_is_extended():
     # while the fit inside the data barely changes.
     from matlearn.learning.fit import fit_system, kernel_gradients, solve_fit
 
-    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
-    nominal = sc.model()
-    truth = _scene(Material("corotated", 2e5, 0.3, 1000.0)).model()
-    X, Vel = _frames(sc, truth, steps=90)
-    fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    sc, nominal, truth, X, Vel, fc = _softer_truth_forces()
     fc = fc + 0.2 * np.sqrt(np.mean(fc**2)) * np.random.default_rng(1).standard_normal(fc.shape)
     system = fit_system(nominal, [FitFrames(X, Vel, fc, None, sc.fixed)], num_centers=16, damping=False)
     S = 1 + 2 * (system.samples - 1)

@@ -22,7 +22,7 @@ from matlearn.replay import simulate_recording
 from matlearn.scene import load_scene, save_scene
 from matlearn.synthetic import Motion, make_case
 
-from learning_cases import small_bar_case
+from learning_cases import scaled_fit, small_bar_case
 
 OPTS = dict(modes=12, centers=12, ridges=(1e-6,))
 
@@ -32,20 +32,9 @@ def case(tmp_path_factory):
     return small_bar_case(tmp_path_factory.mktemp("loop"))
 
 
-def _scaled_fit(factor):
-    real = loop_mod.solve_fit
-
-    def fit(*args, **kw):
-        p, info = real(*args, **kw)
-        p.weights, p.linear, p.bias = factor * p.weights, factor * p.linear, factor * p.bias
-        p.alpha_weights, p.alpha_bias = factor * p.alpha_weights, factor * p.alpha_bias
-        return p, info
-    return fit
-
-
 def test_an_update_that_raises_the_train_error_is_rejected(case, tmp_path, monkeypatch):
     # A fit pointing the wrong way (the negated correction): every step of it is worse.
-    monkeypatch.setattr(loop_mod, "solve_fit", _scaled_fit(-1.0))
+    monkeypatch.setattr(loop_mod, "solve_fit", scaled_fit(-1.0))
     res = learn(load_scene(case), tmp_path / "run", LearnOptions(iterations=4, patience=1, **OPTS), log=None)
     ms = res["metrics"]
     # Rejected at iteration 0; one more try from the new space-time trajectories (patience 1),
@@ -61,7 +50,7 @@ def test_an_update_that_raises_the_train_error_is_rejected(case, tmp_path, monke
 
 def test_an_overshooting_update_is_shortened_and_errors_never_increase(case, tmp_path, monkeypatch):
     # 4x the fitted correction overshoots; a quarter of it is the plain fit, which helps.
-    monkeypatch.setattr(loop_mod, "solve_fit", _scaled_fit(4.0))
+    monkeypatch.setattr(loop_mod, "solve_fit", scaled_fit(4.0))
     res = learn(load_scene(case), tmp_path / "run", LearnOptions(iterations=2, **OPTS), log=None)
     m0 = res["metrics"][0]
     assert m0["fit"]["steps_tried"][0]["train_max_error_pct"] > m0["train"]["max_error_pct"]

@@ -19,7 +19,7 @@ from matlearn.materials import Damping, Material
 from matlearn.recording import Recording
 from matlearn.scene import Scene, load_scene
 
-from learning_cases import small_bar_case
+from learning_cases import scaled_fit, small_bar_case
 
 OPTS = dict(modes=12, centers=12, ridges=(1e-6,))
 
@@ -47,22 +47,11 @@ def test_bounded_check_is_the_full_simulation_or_stops_above_the_bound(case):
     assert 0 < stop.value.simulated < 1
 
 
-def _scaled_fit(factor):
-    real = loop_mod.solve_fit
-
-    def fit(*args, **kw):
-        p, info = real(*args, **kw)
-        p.weights, p.linear, p.bias = factor * p.weights, factor * p.linear, factor * p.bias
-        p.alpha_weights, p.alpha_bias = factor * p.alpha_weights, factor * p.alpha_bias
-        return p, info
-    return fit
-
-
 def test_early_stopped_checks_give_the_same_run(case, tmp_path, monkeypatch):
     # 4x the fitted correction overshoots: the full step is worse, the shortened ones are
     # checked against the current error; two smoothing candidates, the second checked against
     # the first.
-    monkeypatch.setattr(loop_mod, "solve_fit", _scaled_fit(4.0))
+    monkeypatch.setattr(loop_mod, "solve_fit", scaled_fit(4.0))
     runs = {}
     for stop in (False, True):
         runs[stop] = learn(load_scene(case), tmp_path / f"run_{stop}",
@@ -149,7 +138,7 @@ def test_first_search_stops_checks_above_the_current_error_and_can_stop_at_a_rej
     # The negated correction: every candidate and every shortened step is worse than the current
     # (nominal) model. "first" checks each against the current error and stops it once above;
     # without retries the loop ends at the first rejected update.
-    monkeypatch.setattr(loop_mod, "solve_fit", _scaled_fit(-1.0))
+    monkeypatch.setattr(loop_mod, "solve_fit", scaled_fit(-1.0))
     res = learn(load_scene(case), tmp_path / "run",
                 LearnOptions(iterations=4, ridge_search="first", retry_rejected=False, smoothing=(1e-3, 1.0),
                              **OPTS), log=None)

@@ -50,11 +50,17 @@ def test_learning_from_the_baseline_starts_at_it_and_never_ends_above_it(case, t
     assert again.damping.alpha_stiffness == lscene.damping.alpha_stiffness
 
 
-def test_cli_baseline_start_saves_the_fitted_parameters_and_simulate_reproduces_it(case, tmp_path):
+def _cli_learn(case, tmp_path, start):
+    """One short `matlearn learn` run from the given start; returns its run folder."""
     out = tmp_path / "run"
     rc = cli.main(["learn", str(case), "--out", str(out), "--iterations", "1", "--modes", "10",
-                   "--centers", "8", "--no-distill", "--quiet", "--start", "baseline"])
+                   "--centers", "8", "--no-distill", "--quiet", "--start", start])
     assert rc == 0
+    return out
+
+
+def test_cli_baseline_start_saves_the_fitted_parameters_and_simulate_reproduces_it(case, tmp_path):
+    out = _cli_learn(case, tmp_path, "baseline")
     meta = json.loads((out / "model.json").read_text())
     assert meta["start"] == "baseline"
     sc = load_scene(case)
@@ -120,10 +126,7 @@ def test_best_start_keeps_the_lower_train_error_and_never_looks_at_the_test(case
 
 
 def test_cli_best_start_keeps_the_lower_train_run_and_its_model_replays(case, tmp_path):
-    out = tmp_path / "run"
-    rc = cli.main(["learn", str(case), "--out", str(out), "--iterations", "1", "--modes", "10",
-                   "--centers", "8", "--no-distill", "--quiet", "--start", "best"])
-    assert rc == 0
+    out = _cli_learn(case, tmp_path, "best")
     best = json.loads((out / "best_start.json").read_text())
     train = best["train_max_error_pct"]
     assert best["chosen"] == min(train, key=train.get)
