@@ -164,28 +164,45 @@ def simulation_times(scene, rec: Recording) -> np.ndarray:
 
 
 def simulate_recording(scene, model, rec: Recording, progress=None, state=None,
-                       f_ext=None, max_newton: int = 8):
+                       f_ext=None, max_newton: int = 8, chunk: int | None = None, after_chunk=None):
     """Simulate over the recording's span at scene.time_step from `state` = (x0, v0) (default:
     :func:`initial_state`), honouring clamped and driven vertices, in one C++ call. Returns
     (sim_times (S+1,), X (S+1, n, 3), V (S+1, n, 3)). progress(done, total) is called from C++
-    every few steps."""
+    every few steps. after_chunk(steps_done, X_new): the simulation runs `chunk` steps per C++
+    call and hands over each call's new frames (it may raise to stop the simulation early: a
+    bounded check); the trajectory is bitwise the one of a single call."""
     n = scene.mesh.num_vertices
     x0, v0 = state if state is not None else initial_state(scene, model, rec)
     f = np.zeros((n, 3)) if f_ext is None else np.asarray(f_ext, float)
     sim_t = simulation_times(scene, rec)
+    steps = len(sim_t) - 1
     integ = scene.integrator(model, max_newton=max_newton)
     didx, dtargets = drive_vertices(scene, rec)
     if len(didx):
         integ.set_prescribed(didx)
         x0 = np.array(x0, float)
         x0[didx] = interpolate_frames(rec.times, dtargets, sim_t[:1])[0]
-        integ.set_state(x0, v0)
         targets = interpolate_frames(rec.times, dtargets, sim_t[1:])
-        X, Vel = integ.simulate_constrained(targets, f, progress=progress)
-    else:
-        integ.set_state(x0, v0)
-        X, Vel = integ.simulate(len(sim_t) - 1, f, 1, progress=progress)
-    return sim_t, X, Vel
+    integ.set_state(x0, v0)
+
+    def run(k, s):  # k steps from step s
+        if len(didx):
+            return integ.simulate_constrained(np.ascontiguousarray(targets[s:s + k]), f, progress=progress)
+        return integ.simulate(k, f, 1, progress=progress)
+
+    if after_chunk is None:
+        X, Vel = run(steps, 0)
+        return sim_t, X, Vel
+    Xs, Vs, s = [], [], 0
+    while s < steps:
+        k = min(max(1, int(chunk or steps)), steps - s)
+        X, Vel = run(k, s)
+        first = 0 if s == 0 else 1  # every call repeats its start frame
+        Xs.append(X[first:])
+        Vs.append(Vel[first:])
+        s += k
+        after_chunk(s, Xs[-1])
+    return sim_t, np.concatenate(Xs), np.concatenate(Vs)
 
 
 def predict_markers(scene, model, rec: Recording, sim=None, embedding: Embedding | None = None,

@@ -48,7 +48,7 @@ from ..clouds.prepare import cloud_lambda, motion_scales, track_scene
 from ..clouds.tracking import TrackOptions, refresh_markers
 from ..embedding import embed_points
 from ..recording import load_recording
-from ..replay import drive_vertices, initial_state, interpolate_frames, simulate_recording, simulation_times
+from ..replay import initial_state, interpolate_frames, simulate_recording, simulation_times
 from .fit import (FitFrames, RbfParams, extension_probes, fit_system, project_linear_part,
                   solve_fit, tangent_margin)
 from .initial import initial_trajectory
@@ -203,40 +203,19 @@ CHECK_CHUNKS = 25
 
 
 def _simulate_bounded(scene, model, rec, emb, bound, done_steps, total_steps):
-    """simulate_recording (same initial state, same integrator, same steps: the trajectory is
-    bitwise the one of a single call) in chunks; raises ErrorBoundExceeded as soon as a marker
-    error at a recording time already simulated exceeds `bound` (% of size): the score is a
-    max over samples, so the rest of the simulation cannot bring it back under the bound."""
-    n = scene.mesh.num_vertices
-    x0, v0 = robust_initial_state(scene, model, rec, emb)
+    """simulate_recording in chunks (the trajectory is bitwise the one of a single call);
+    raises ErrorBoundExceeded as soon as a marker error at a recording time already simulated
+    exceeds `bound` (% of size): the score is a max over samples, so the rest of the simulation
+    cannot bring it back under the bound."""
     sim_t = simulation_times(scene, rec)
     steps = len(sim_t) - 1
-    integ = scene.integrator(model)
-    didx, dtargets = drive_vertices(scene, rec)
-    f = np.zeros((n, 3))
-    if len(didx):
-        integ.set_prescribed(didx)
-        x0 = np.array(x0, float)
-        x0[didx] = interpolate_frames(rec.times, dtargets, sim_t[:1])[0]
-        targets = interpolate_frames(rec.times, dtargets, sim_t[1:])
-    integ.set_state(x0, v0)
-    chunk = max(10, int(np.ceil(steps / CHECK_CHUNKS)))
-    Xs, Vs, Ys = [], [], []
     size, seen = scene.object_size, rec.seen
-    s, t_done = 0, -np.inf
-    while s < steps:
-        k = min(chunk, steps - s)
-        if len(didx):
-            X, V = integ.simulate_constrained(np.ascontiguousarray(targets[s:s + k]), f)
-        else:
-            X, V = integ.simulate(k, f, 1)
-        first = 0 if s == 0 else 1  # every chunk repeats its start frame
-        Xs.append(X[first:])
-        Vs.append(V[first:])
-        Ys.append(emb.apply(X[first:]))
-        s += k
+    Ys, t_done = [], [-np.inf]
+
+    def check(s, X):
+        Ys.append(emb.apply(X))
         t_now = sim_t[s] if s < steps else np.inf
-        sel = (rec.times > t_done) & (rec.times <= t_now)
+        sel = (rec.times > t_done[0]) & (rec.times <= t_now)
         if sel.any():
             Y = np.concatenate(Ys)
             P = interpolate_frames(sim_t[:len(Y)], Y, rec.times[sel])
@@ -244,8 +223,10 @@ def _simulate_bounded(scene, model, rec, emb, bound, done_steps, total_steps):
             worst = 100.0 * e.max() / size if e.size else 0.0
             if worst > bound:
                 raise ErrorBoundExceeded(worst, (done_steps + s) / total_steps)
-        t_done = t_now
-    return sim_t, np.concatenate(Xs), np.concatenate(Vs)
+        t_done[0] = t_now
+
+    return simulate_recording(scene, model, rec, state=robust_initial_state(scene, model, rec, emb),
+                              chunk=max(10, int(np.ceil(steps / CHECK_CHUNKS))), after_chunk=check)
 
 
 def _errors(scene, model, recs, embs, bound=np.inf):
