@@ -204,8 +204,6 @@ def _gauss_newton(problem, ctx, params, recs, x, free, iterations=2, step=0.07, 
     proj = proj or (lambda parts: parts)
 
     def fun(x, only, base):
-        if only is None:
-            return proj(_residual(problem, ctx, params, x, recs))
         return proj(_residual(problem, ctx, params, x, recs, only, base))
 
     return _lm(fun, x, free, len(recs), iterations, step)
