@@ -222,16 +222,23 @@ class FitSystem:
     _penalty: np.ndarray | None = None
     _edge: np.ndarray | None = None
 
+    def _penalty_samples(self) -> np.ndarray:
+        """The fitted stretches, subsampled (seeded) to at most max_penalty_samples."""
+        S = self.samples
+        if len(S) > self.max_penalty_samples:
+            S = S[np.random.default_rng(self.seed).choice(len(S), self.max_penalty_samples, replace=False)]
+        return S
+
+    def _gradient_gram(self, points) -> np.ndarray:
+        """(c, c) mean over `points` of grad g_k . grad g_l."""
+        G = kernel_gradients(points, self.centers, self.epsilon, self.box)
+        return np.einsum("ikb,ilb->kl", G, G) / len(points)
+
     def penalty(self) -> np.ndarray:
         """Pk (c, c): mean over the (subsampled) fitted stretches of grad g_k . grad g_l, so that
         the mean squared tangent of the RBF part of one stress component is w^T Pk w (cached)."""
         if self._penalty is None:
-            S = self.samples
-            if len(S) > self.max_penalty_samples:
-                S = S[np.random.default_rng(self.seed).choice(len(S), self.max_penalty_samples,
-                                                              replace=False)]
-            G = kernel_gradients(S, self.centers, self.epsilon, self.box)
-            self._penalty = np.einsum("ikb,ilb->kl", G, G) / len(S)
+            self._penalty = self._gradient_gram(self._penalty_samples())
         return self._penalty
 
     def edge_penalty(self) -> np.ndarray:
@@ -240,17 +247,12 @@ class FitSystem:
         is extended beyond the data (zeros when nothing leaves the box; cached)."""
         if self._edge is None:
             c = len(self.centers)
-            S = 1.0 + 2.0 * (self.samples - 1.0)
-            if len(S) > self.max_penalty_samples:
-                S = S[np.random.default_rng(self.seed).choice(len(S), self.max_penalty_samples,
-                                                              replace=False)]
+            S = 1.0 + 2.0 * (self._penalty_samples() - 1.0)
             self._edge = np.zeros((c, c))
             if self.box[0] is not None:
                 out = np.any((S < self.box[0]) | (S > self.box[1]), axis=1)
                 if out.any():
-                    E = np.clip(S[out], self.box[0], self.box[1])
-                    G = kernel_gradients(E, self.centers, self.epsilon, self.box)
-                    self._edge = np.einsum("ikb,ilb->kl", G, G) / len(E)
+                    self._edge = self._gradient_gram(np.clip(S[out], self.box[0], self.box[1]))
         return self._edge
 
 
