@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from matlearn import cases
-from matlearn.learning import LearnOptions, learn
+from matlearn.learning import LearnOptions
 from matlearn.learning.baseline import baseline_test_errors, fit_parameters
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS
-from matlearn.learning.start import MODES, learn_best_start, start_scene
+from matlearn.learning.start import MODES, learn_from
 from matlearn.replay import score
 from matlearn.scene import load_scene
 
@@ -57,12 +57,8 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
     if run_dir.exists():
         shutil.rmtree(run_dir)
     log = lambda *a: print("   ", *a, flush=True)  # noqa: E731
-    if start == "best":  # both starts, the lower learned train error kept (learning/start.py)
-        lscene, sinfo, res, _ = learn_best_start(scene, run_dir, opts, warm=fit, max_evaluations=start_evals,
-                                                 log=log)
-    else:
-        lscene, sinfo = start_scene(scene, start, run_dir, warm=fit, max_evaluations=start_evals, log=log)
-        res = learn(lscene, run_dir, opts, log=log)
+    # best: both starts, the lower learned train error kept (learning/start.py)
+    lscene, sinfo, res, _ = learn_from(scene, start, run_dir, opts, warm=fit, max_evaluations=start_evals, log=log)
     # wall_s: the start fit (3 parameters, start=baseline/best) and the learning loop(s)
     wall = time.time() - t0
     final_test = res["final"]["test"]  # scored inside the loop; None: a test recording diverged

@@ -19,7 +19,7 @@ from pathlib import Path
 
 
 def run(args) -> int:
-    from ..learning import LearnOptions, learn, save_model
+    from ..learning import LearnOptions, save_model
     from ..learning.fit import EXTRAPOLATION_WEIGHTS
     from ..learning.plots import plot_convergence, plot_error_histograms
     from ..scene import load_scene
@@ -34,14 +34,10 @@ def run(args) -> int:
                         extrapolation=EXTRAPOLATION_WEIGHTS)
     t0 = time.time()
     log = (lambda *a: print(*a, file=sys.stderr, flush=True)) if not args.quiet else None
-    from ..learning.start import learn_best_start, start_scene
+    from ..learning.start import learn_from
 
-    if args.start == "best":  # both starts, the lower learned train error kept (RUN/start_<name>)
-        scene, start, res, run_dir = learn_best_start(scene, out, opts, resume=args.resume, log=log)
-    else:
-        scene, start = start_scene(scene, args.start, out, log=log)
-        res = learn(scene, out, opts, resume=args.resume, log=log)
-        run_dir = out
+    # best: both starts, the lower learned train error kept (RUN/start_<name>)
+    scene, start, res, run_dir = learn_from(scene, args.start, out, opts, resume=args.resume, log=log)
     params = res["params"]
     summary = {"scene": str(Path(args.scene).resolve()), "best_iteration": res["best_iteration"],
                "lambda": res["lambda"],

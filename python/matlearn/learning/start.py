@@ -156,3 +156,17 @@ def chosen_run(run_dir) -> Path:
     run_dir = Path(run_dir)
     f = run_dir / BEST_JSON
     return run_dir / json.loads(f.read_text())["run"] if f.exists() else run_dir
+
+
+def learn_from(scene, start: str, run_dir, options=None, warm: dict | None = None, max_evaluations: int = 20,
+               resume: bool = False, log=None):
+    """Learn from the start `start` (one of MODES: "nominal", "baseline", or "best" for both,
+    :func:`learn_best_start`). Returns (the scene learned on, start info, learn result, run folder
+    of the kept model)."""
+    if start == "best":
+        return learn_best_start(scene, run_dir, options, warm=warm, max_evaluations=max_evaluations,
+                                resume=resume, log=log)
+    from .loop import learn
+
+    sc, info = start_scene(scene, start, run_dir, warm=warm, max_evaluations=max_evaluations, log=log)
+    return sc, info, learn(sc, run_dir, options, resume=resume, log=log), Path(run_dir)
