@@ -58,6 +58,40 @@ void RbfCorrection::evaluate(const MatX3& Fh, const MatX3&, CorrectionOutput& ou
   }
 }
 
+void RbfCorrection::evaluate_values(const MatX3& Fh, const MatX3&, CorrectionOutput& out) const {
+  const int m = Fh.rows();
+  out.dPh.resize(m, 3);
+  out.d_dFh.clear();
+  out.d_dFhdot.clear();
+  out.dalpha.resize(m);
+  const bool damp = wa_.size() > 0, box = lo_.size() == 3;
+  const double eps2 = eps_ * eps_;
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < m; ++e) {
+    const Vec3 s = Fh.row(e).transpose();
+    Vec3 p = A_ * (s - Vec3::Ones()) + b_;
+    double da = a0_;
+    const Vec3 sc = box ? Vec3(s.cwiseMax(lo_).cwiseMin(hi_)) : s;
+    if (sc == s) {
+      // extended_kernel with delta = 0: phi + (+-0) / phi == phi exactly
+      for (int k = 0; k < c_.rows(); ++k) {
+        const Vec3 d = sc - c_.row(k).transpose();
+        const double phi = std::sqrt(d.squaredNorm() + eps2);
+        p += w_.row(k).transpose() * phi;
+        if (damp) da += wa_[k] * phi;
+      }
+    } else {
+      double phi_c = 0;
+      for (int k = 0; k < c_.rows(); ++k) {
+        p += w_.row(k).transpose() * extended_kernel(s, sc, c_.row(k).transpose(), eps_, nullptr, &phi_c);
+        if (damp) da += wa_[k] * phi_c;
+      }
+    }
+    out.dPh.row(e) = p.transpose();
+    out.dalpha[e] = da;
+  }
+}
+
 MlpCorrection::MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX in_std,
                              VecX out_mean, VecX out_std)
     : layers_(std::move(layers)), in_mean_(std::move(in_mean)), in_std_(std::move(in_std)),

@@ -21,6 +21,12 @@ class Correction {
   virtual ~Correction() = default;
   /// Fh, Fhdot: (m x 3). Fills `out` for all m rows.
   virtual void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const = 0;
+  /// Values only: fills out.dPh and out.dalpha (bitwise those of evaluate) and leaves the
+  /// Jacobians d_dFh, d_dFhdot empty, for callers that need forces but no tangent (the
+  /// force-only Model evaluation of residuals and chord steps). Default: the full evaluate.
+  virtual void evaluate_values(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const {
+    evaluate(Fh, Fhdot, out);
+  }
   /// True when evaluate() may run on several threads (false for Python callbacks).
   virtual bool thread_safe() const { return true; }
 };
@@ -40,6 +46,9 @@ class RbfCorrection final : public Correction {
   RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bias, VecX alpha_weights,
                 double alpha_bias, double epsilon, VecX lower = VecX(), VecX upper = VecX());
   void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
+  /// No kernel gradients; inside the box each kernel is phi alone (the extension term is an
+  /// exact +0 there), so the values are bitwise those of evaluate().
+  void evaluate_values(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
 
  private:
   MatX3 c_, w_;

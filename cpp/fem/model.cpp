@@ -151,7 +151,11 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   correction::CorrectionOutput corr;
   const bool has_corr = correction_ != nullptr;
   if (has_corr) {
-    correction_->evaluate(st.Fh, st.Fhdot, corr);
+    // Force-only evaluations (residuals, chord steps) need no correction Jacobians.
+    if (flags & (kStiffness | kDamping))
+      correction_->evaluate(st.Fh, st.Fhdot, corr);
+    else
+      correction_->evaluate_values(st.Fh, st.Fhdot, corr);
     if (!corr.dPh.allFinite()) throw NumericalError("correction returned NaN or Inf stress");
   }
   st.Ph.resize(m, 3);

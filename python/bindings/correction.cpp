@@ -64,7 +64,19 @@ void define_correction(py::module_& m) {
           },
           py::arg("Fh"), py::arg("Fhdot"),
           "Evaluate for m elements: returns (dPh (m,3) Pa, d/dFh (m,3,3), d/dFhdot (m,3,3), "
-          "dalpha_K (m,) s).");
+          "dalpha_K (m,) s).")
+      .def(
+          "evaluate_values",
+          [](const Correction& c, const py::array& Fh, const py::array& Fhdot) {
+            const MatX3 a = as_matrix<3>(Fh, "Fh");
+            const MatX3 b = as_matrix<3>(Fhdot, "Fhdot", a.rows());
+            CorrectionOutput out;
+            c.evaluate_values(a, b, out);
+            return py::make_tuple(out.dPh, out.dalpha);
+          },
+          py::arg("Fh"), py::arg("Fhdot"),
+          "Values only, as the force-only Model evaluation uses them: (dPh (m,3) Pa, dalpha_K (m,) "
+          "s), equal to the first and last outputs of evaluate (the RBF skips its kernel gradients).");
 
   py::class_<correction::RbfCorrection, Correction, std::shared_ptr<correction::RbfCorrection>>(
       m, "RbfCorrection")

@@ -1,0 +1,53 @@
+"""The force-only correction path (Correction.evaluate_values, used by every Model evaluation that
+needs no tangent: residuals of the space-time problem, chord steps of the time step) gives
+bitwise the values of the full evaluate, inside and outside the RBF's box, with and without its
+damping part; and a Model's stress and damping through that path equal the full path's."""
+import numpy as np
+import pytest
+
+from matlearn import _core, materials, meshes
+
+
+def _rbf(box: bool, damping: bool, seed=0):
+    rng = np.random.default_rng(seed)
+    c = 1.0 + 0.2 * rng.standard_normal((7, 3))
+    w = 1e4 * rng.standard_normal((7, 3))
+    A = 1e4 * rng.standard_normal((3, 3))
+    b = 1e3 * rng.standard_normal(3)
+    wa = 1e-3 * rng.standard_normal(7) if damping else np.zeros(0)
+    lo, hi = (np.array([0.9, 0.92, 0.88]), np.array([1.1, 1.05, 1.12])) if box else (None, None)
+    return _core.correction.RbfCorrection(c, w, A, b, wa, 2e-3 if damping else 0.0, 0.05,
+                                          lower=lo, upper=hi)
+
+
+@pytest.mark.parametrize("box", [False, True])
+@pytest.mark.parametrize("damping", [False, True])
+def test_rbf_values_bitwise_equal_full_evaluate(box, damping):
+    rng = np.random.default_rng(1)
+    Fh = 1.0 + 0.15 * rng.standard_normal((500, 3))  # about half of the rows outside the box
+    Fh[:50] = [1.0, 1.0, 1.0]
+    Fhd = rng.standard_normal((500, 3))
+    c = _rbf(box, damping)
+    dPh, _, _, dalpha = c.evaluate(Fh, Fhd)
+    v_dPh, v_dalpha = c.evaluate_values(Fh, Fhd)
+    assert np.abs(dPh).max() > 1e3  # a real correction
+    np.testing.assert_array_equal(v_dPh, dPh)
+    np.testing.assert_array_equal(v_dalpha, dalpha)
+
+
+def test_model_force_only_path_equals_full_path():
+    # principal_kinematics evaluates without tangents (the values path); element_state with K and
+    # D (the full evaluate). The total stress and damping coefficient they see must be identical.
+    mesh = meshes.bar(0.1, 0.02, 0.02, cells=(6, 2, 2))
+    model = materials.make_model(mesh, materials.Material("neo_hookean", 2e5, 0.4, 1000.0),
+                                 materials.Damping(0.0, 0.005))
+    model.correction = _rbf(True, True)
+    rng = np.random.default_rng(2)
+    V = np.asarray(mesh.vertices)
+    x = V + 0.004 * rng.standard_normal(V.shape)
+    v = 0.1 * rng.standard_normal(V.shape)
+    _, _, Ph, aK = model.principal_kinematics(x, v)
+    st = model.element_state(x, v, True)
+    assert np.abs(st["dPh_correction"]).max() > 1e3
+    np.testing.assert_array_equal(Ph, st["Ph"])
+    np.testing.assert_array_equal(aK, st["alpha_K"])
