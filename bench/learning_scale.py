@@ -8,7 +8,8 @@ from a 1 N tip load; train recording --duration s with markers on --marker-fract
 surface vertices at --frame-rate Hz; the simulation (and space-time) runs at 1 ms. The case is
 built once into --work (its truth simulation is not part of the learning time).
 
-Options at scale (printed and written to the JSON): ridge_search "first" (one fit and one
+The extrapolation candidates are the library default (LearnOptions.extrapolation =
+fit.EXTRAPOLATION_WEIGHTS, as the `learn` CLI). Options at scale (printed and written to the JSON): ridge_search "first" (one fit and one
 forward check per iteration instead of one per smoothing candidate), tangent_stride (frames
 sharing one tangent evaluation in the space-time Jacobian), --iterations (max outer
 iterations), --gn-tolerance (a space-time solve stops when a step gains less than this fraction;
@@ -217,7 +218,8 @@ def main(argv=None) -> int:
                        "jacobian_every": opt.jacobian_every, "gn_tolerance": opt.gn_tolerance,
                        "retry_rejected": opt.retry_rejected, "early_stop": opt.early_stop,
                        "modes": opt.modes, "centers": opt.centers, "fit_frames": opt.fit_frames,
-                       "smoothing": list(opt.smoothing), "patience": opt.patience},
+                       "smoothing": list(opt.smoothing), "patience": opt.patience,
+                       "extrapolation": [list(x) for x in opt.extrapolation]},
            "case_build_s": case_s, "load_avg_1min_start": load0, "load_avg_1min_end": load1,
            "cpus": os.cpu_count(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
            "commit": code}

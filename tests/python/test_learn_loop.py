@@ -108,7 +108,7 @@ def test_ridge_search(case, tmp_path, monkeypatch, search, expect_fits, expect_r
     monkeypatch.setattr(loop_mod, "tangent_margin", lambda *a, **kw: 1.0)
     lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
                           LearnOptions(ridges=(1e-6, 1e-4, 1e-2), smoothing=(0.1,), ridge_search=search,
-                                       **{"modes": 4}), log=None)
+                                       extrapolation=((0.0, 0.0),), **{"modes": 4}), log=None)
     errors = {1e-6: 1.5, 1e-4: 0.9, 1e-2: 0.8}  # current error 1.0: 1e-4 is the first to improve
     monkeypatch.setattr(lr, "_train_error", lambda p, bound=np.inf: (errors[float(p.weights[0, 0])], [], []))
     p, info, _ = lr._update(None, None, None, 1.0, 0)
@@ -134,7 +134,7 @@ def test_unstable_candidates_escalate_the_smoothing_before_shortening(case, tmp_
     # Stable beyond the data only from smoothing 100 on (the blends of an unstable fit stay unstable).
     monkeypatch.setattr(loop_mod, "tangent_margin", lambda p, *a, **kw: float(p.weights[0, 0]) - 50.0)
     lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
-                          LearnOptions(smoothing=(0.1, 1.0), modes=4), log=None)
+                          LearnOptions(smoothing=(0.1, 1.0), extrapolation=((0.0, 0.0),), modes=4), log=None)
     simulated = []
     monkeypatch.setattr(lr, "_train_error", lambda p, bound=np.inf: (simulated.append(p) or 0.5, [], []))
     p, info, _ = lr._update(None, None, None, 1.0, 0)

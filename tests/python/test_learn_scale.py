@@ -141,7 +141,7 @@ def test_first_search_stops_checks_above_the_current_error_and_can_stop_at_a_rej
     monkeypatch.setattr(loop_mod, "solve_fit", scaled_fit(-1.0))
     res = learn(load_scene(case), tmp_path / "run",
                 LearnOptions(iterations=4, ridge_search="first", retry_rejected=False, smoothing=(1e-3, 1.0),
-                             **OPTS), log=None)
+                             extrapolation=((0.0, 0.0),), **OPTS), log=None)  # one family: 2 candidates
     ms = res["metrics"]
     assert [m.get("update") for m in ms] == ["rejected"] and ms[-1]["stop"] == "no improving update"
     cur = ms[0]["train"]["max_error_pct"]

@@ -49,8 +49,8 @@ from ..clouds.tracking import TrackOptions, refresh_markers
 from ..embedding import embed_points
 from ..recording import load_recording
 from ..replay import initial_state, interpolate_frames, simulate_recording, simulation_times
-from .fit import (FitFrames, RbfParams, extension_probes, fit_system, project_linear_part,
-                  solve_fit, tangent_margin)
+from .fit import (EXTRAPOLATION_WEIGHTS, FitFrames, RbfParams, extension_probes, fit_system,
+                  project_linear_part, solve_fit, tangent_margin)
 from .initial import initial_trajectory
 from .pod import pod_basis
 from .spacetime import build_problem, constrained_vertices, solve_spacetime
@@ -87,8 +87,9 @@ class LearnOptions:
     fit's tangent penalty (fit.py: the RBF part's tangent relative to the nominal modulus)
     and ridges: relative numerical Tikhonov weights; extrapolation: (linear, edge) weight
     pairs of the penalties on what the correction does beyond the data (fit.solve_fit: the
-    linear part A and the RBF part's slope where it leaves the data; (0, 0): none;
-    fit.EXTRAPOLATION_WEIGHTS adds a penalised family, bench/learning_table.py); every
+    linear part A and the RBF part's slope where it leaves the data; (0, 0): none; the default
+    fit.EXTRAPOLATION_WEIGHTS is the free family followed by a penalised one, as the `learn` CLI
+    and bench/learning_table.py use it); every
     (extrapolation, smoothing, ridge) triple is a candidate per iteration (the best train
     error wins; when none is stable and simulable, up to `escalate` more with 10x, 100x the
     largest smoothing weight are tried before the update is shortened); ridge_search: "all" (fit and
@@ -111,7 +112,8 @@ class LearnOptions:
     shortened steps: the current error, as only an improvement is looked for); the score is a
     max over samples, so the rest cannot bring it back under (a stopped check records the error
     that exceeded, a lower bound, and `stopped_early`); gn_tolerance: a space-time solve stops
-    when a Gauss-Newton step lowers the cost by less than this fraction; jacobian_every:
+    when a Gauss-Newton step lowers the cost by less than this fraction, or before a step whose
+    Gauss-Newton model predicts that (no residual evaluated for it); jacobian_every:
     Gauss-Newton steps per evaluation of the space-time Jacobian blocks (1: every step; k > 1:
     chord steps in between, re-evaluated after a shortened step; spacetime.solve_spacetime);
     retry_rejected: after an update no step of
@@ -135,7 +137,7 @@ class LearnOptions:
     backtrack: tuple = (0.5, 0.25)
     track: TrackOptions | None = None
     smoothing: tuple = (1e-3, 1e-2, 1e-1, 1.0)
-    extrapolation: tuple = ((0.0, 0.0),)
+    extrapolation: tuple = EXTRAPOLATION_WEIGHTS
     escalate: int = 2
     tangent_stride: int = 1
     refresh_correspondences: int = 0
