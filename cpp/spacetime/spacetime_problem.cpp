@@ -444,10 +444,6 @@ SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const Pro
     const double cost = 0.5 * C_.squaredNorm();
     int cg = 0;
     const VecX dz = solve_linear(opt, &cg);
-    // The Gauss-Newton model's cost after the full step, 0.5 |J dz + C|^2 (one product): when
-    // even the model predicts a gain below the tolerance, the solve has converged and the step
-    // is not worth a residual evaluation (a full nonlinear residual costs ~1000x a product).
-    if (opt.tolerance > 0 && cost - 0.5 * (jvp(dz) + C_).squaredNorm() < opt.tolerance * cost) break;
     const Eigen::Map<const MatXr> dZ(dz.data(), frames_, r_);
     double t = 1.0;
     bool accepted = false;

@@ -31,9 +31,7 @@ struct SolveOptions {
   int max_iterations = 10;     ///< Gauss-Newton steps
   int cg_iterations = 300;     ///< CGLS iterations per step
   double cg_tolerance = 1e-6;  ///< CGLS stops when |J^T r| <= tol |J^T r_0|
-  /// stop when the cost decreases by less than this fraction, or before a step whose
-  /// Gauss-Newton model predicts that (no residual evaluated for it)
-  double tolerance = 1e-5;
+  double tolerance = 1e-5;     ///< stop when the cost decreases by less than this fraction
   /// "pcgls": matrix-free CGLS (on J p, J^T q) preconditioned by a factorisation of J^T J frozen
   /// at the first Gauss-Newton step of a solve (refreshed when CG needs > refresh_iterations);
   /// "cgls": matrix-free CGLS with Jacobi column scaling only;

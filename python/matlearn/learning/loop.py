@@ -112,8 +112,7 @@ class LearnOptions:
     shortened steps: the current error, as only an improvement is looked for); the score is a
     max over samples, so the rest cannot bring it back under (a stopped check records the error
     that exceeded, a lower bound, and `stopped_early`); gn_tolerance: a space-time solve stops
-    when a Gauss-Newton step lowers the cost by less than this fraction, or before a step whose
-    Gauss-Newton model predicts that (no residual evaluated for it); jacobian_every:
+    when a Gauss-Newton step lowers the cost by less than this fraction; jacobian_every:
     Gauss-Newton steps per evaluation of the space-time Jacobian blocks (1: every step; k > 1:
     chord steps in between, re-evaluated after a shortened step; spacetime.solve_spacetime);
     retry_rejected: after an update no step of
