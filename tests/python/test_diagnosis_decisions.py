@@ -34,9 +34,9 @@ def test_among_tied_fits_the_best_once_charged_its_credit_leads_and_the_prior_on
     rows = [_row("poisson_ratio", 0.083), _row("support_compliance", 0.13), _row("heterogeneity", 0.064)]
     credit = {"poisson_ratio": 0.054, "support_compliance": 0.019, "heterogeneity": 0.078}
     out = ranking.order([dict(r) for r in rows], credit, {})
-    # no fit beats another beyond its credit: the one that leaves the least once charged all it
-    # could have gained by mimicking the mesh error leads (0.137 < 0.142 < 0.149)
-    assert [r["name"] for r in out] == ["poisson_ratio", "heterogeneity", "support_compliance"]
+    # no fit beats another beyond its credit: the one that leaves the least once charged what it
+    # could have gained by mimicking the mesh error (CREDIT_FACTOR x credit) leads
+    assert [r["name"] for r in out] == ["support_compliance", "poisson_ratio", "heterogeneity"]
     out = ranking.order([_row("density", 0.1), _row("stiffness_scale", 0.1)],
                         {"density": 0.01, "stiffness_scale": 0.01}, {})
     assert out[0]["name"] == "stiffness_scale"

@@ -7,30 +7,32 @@ from matlearn.diagnosis import fitting, pipeline, ranking
 
 def _row(name, rss, n_eff=400.0, floor=1e-2, credit=None):
     dof = pipeline._dof(name)
-    row = {"name": name, "rss": rss, "score": fitting.score(rss, dof, n_eff, floor), "_fit": object()}
+    row = {"name": name, "rss": rss, "score": fitting.score(rss, dof, n_eff, floor), "_fit": object(),
+           "_criterion": (dof, n_eff, floor)}
     if credit is not None:
-        row["credited"] = fitting.score(rss + credit.get(name, 0.0), dof, n_eff, floor)
+        row["credited"] = fitting.score(rss + ranking.CREDIT_FACTOR * credit.get(name, 0.0), dof, n_eff, floor)
     return row
 
 
 def test_a_tie_is_led_by_the_fit_that_is_best_once_charged_its_discretisation_credit():
-    # a located region leaves 1/5 of the uniform scale's residual, but could mimic a large part
-    # of the mesh's error (credit 0.09): its gain (0.10) is within CREDIT_FACTOR x its credit, so
-    # neither fit beats the other. Charged all it could have mimicked (0.02 + 0.09 = 0.11) it
-    # still explains more than the scale (0.12 + 0.001): it leads, confounded with the scale.
-    credit = {"stiffness_scale": 1e-3, "density": 1e-3, "heterogeneity": 9e-2}
+    # two fits neither of which beats the other (named compression bar): near-equal credits
+    # (6.0e-4, 6.5e-4) must not decide, the better fit once charged its credit leads
+    credit = {"rayleigh_damping": 6.0e-4, "compression_nonlinearity": 6.5e-4}
     tol = {n: 1e-5 for n in credit}
-    rows = [_row(n, r, credit=credit) for n, r in
-            (("stiffness_scale", 0.12), ("density", 0.12), ("heterogeneity", 0.02))]
-    assert not ranking.beats(rows[2], rows[0], credit, tol)
-    ranking.confounded(rows, credit, tol, rss0=0.55)
+    rows = [_row(n, r, n_eff=300, floor=4.3e-3, credit=credit) for n, r in
+            (("rayleigh_damping", 4.58e-3), ("compression_nonlinearity", 4.40e-3))]
+    assert not ranking.beats(rows[1], rows[0], credit, tol)
+    ranking.confounded(rows, credit, tol, rss0=6.3e-3, rss_noise=3.3e-3)
     out = ranking.order(rows, credit, tol)
-    assert [r["name"] for r in out] == ["heterogeneity", "stiffness_scale", "density"]
-    assert "stiffness_scale" in out[0]["confounded_with"]
-    # when the credit could explain the whole gain, the uniform scale leads
-    credit["heterogeneity"] = 0.11
-    rows = [_row(n, r, credit=credit) for n, r in (("stiffness_scale", 0.12), ("heterogeneity", 0.02))]
-    assert ranking.order(rows, credit, tol)[0]["name"] == "stiffness_scale"
+    assert [r["name"] for r in out] == ["compression_nonlinearity", "rayleigh_damping"]
+    assert out[0]["confounded_with"] == ["rayleigh_damping"]
+    # a located region that fits better only by about what it could mimic (named support bar)
+    # does not lead the clamp layer
+    credit = {"support_compliance": 8e-4, "heterogeneity": 3.9e-2}
+    rows = [_row(n, r, n_eff=430, floor=8.8e-3, credit=credit) for n, r in
+            (("heterogeneity", 0.065), ("support_compliance", 0.106))]
+    out = ranking.order(rows, credit, {})
+    assert out[0]["name"] == "support_compliance"
 
 
 def test_a_nested_family_needs_a_leave_one_out_gain_beyond_the_noise():
@@ -40,9 +42,8 @@ def test_a_nested_family_needs_a_leave_one_out_gain_beyond_the_noise():
     tol = {nm: ranking.noise_tolerance(rss_noise, n, pipeline._dof(nm))
            for nm in ("strain_dependent_damping", "rayleigh_damping")}
     credit = {"strain_dependent_damping": 2.6e-5, "rayleigh_damping": 2.1e-5}
-    big = _row("strain_dependent_damping", 3.96e-3, n_eff=340, floor=3.4e-3)
+    big = _row("strain_dependent_damping", 3.90e-3, n_eff=340, floor=3.4e-3)
     small = _row("rayleigh_damping", 4.22e-3, n_eff=340, floor=3.4e-3)
-    big["score"] = small["score"] - 0.3
     assert ranking.beats(big, small, credit, tol)
     loo = {"strain_dependent_damping": 4.8560e-3, "rayleigh_damping": 4.8593e-3}
     best, forced = pipeline._resolve_nested([big, small], lambda name, fit: loo[name], credit, tol,
@@ -56,3 +57,22 @@ def test_a_nested_family_needs_a_leave_one_out_gain_beyond_the_noise():
     assert best["name"] == "strain_dependent_damping"
     assert np.isfinite(best["score"])
 
+
+
+def test_a_located_region_replaces_the_uniform_scale_when_it_fits_better_than_its_credit():
+    # named heterogeneity bar: the region's credit (scaled to the conservative floor) is half of
+    # its gain over the uniform scale; charged at face value it still fits far better, and it
+    # predicts each left-out recording better: preferred (with 2.5x the credit it never was)
+    credit = {"heterogeneity": 5.4e-2, "stiffness_scale": 1.3e-3}
+    tol = {n: 1e-5 for n in credit}
+    big = _row("heterogeneity", 0.020, n_eff=450, floor=1.2e-2)
+    small = _row("stiffness_scale", 0.123, n_eff=450, floor=1.2e-2)
+    loo = {"heterogeneity": 0.024, "stiffness_scale": 0.132}
+    best, forced = pipeline._resolve_nested([small, big], lambda name, fit: loo[name], credit, tol,
+                                            lambda m: None)
+    assert best["name"] == "heterogeneity" and forced == {"heterogeneity": "stiffness_scale"}
+    # a region whose gain its credit could explain is not
+    credit["heterogeneity"] = 0.11
+    best, _ = pipeline._resolve_nested([small, big], lambda name, fit: loo[name], credit, tol,
+                                       lambda m: None)
+    assert best["name"] == "stiffness_scale"

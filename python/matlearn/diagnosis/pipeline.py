@@ -374,9 +374,12 @@ def _rank(fits, cheap, order, n_eff, floor, rss0, credit, tol, rss_noise=0.0):
         rss = fit.rss if fit else cheap[name][1]
         rows.append({"name": name, "_fit": fit, "rss": rss,
                      "score": fitting.score(rss, _dof(name), n_eff, floor),
-                     # the criterion with all the fit could gain by mimicking the mesh error
-                     # charged: among fits the data cannot tell apart, this one leads
-                     "credited": fitting.score(rss + credit.get(name, 0.0), _dof(name), n_eff, floor),
+                     # the criterion charged with what the fit could gain by mimicking the mesh
+                     # error, as uncertain as in ranking.beats: among fits the data cannot tell
+                     # apart, the best one by it leads
+                     "credited": fitting.score(rss + ranking.CREDIT_FACTOR * credit.get(name, 0.0),
+                                               _dof(name), n_eff, floor),
+                     "_criterion": (_dof(name), n_eff, floor),
                      "explained": float(np.clip((rss0 - rss) / max(rss0, 1e-300), 0, 1))})
     ranking.confounded(rows, credit, tol, rss0, rss_noise=rss_noise)
     return ranking.order(rows, credit, tol)
@@ -396,7 +399,7 @@ def _add_nested_ties(rows, forced):
 def _resolve_nested(ranked, cv_of, credit, tol, say):
     """The best-ranked family, with a nested pair decided on evidence: the larger family (e.g.
     strain-dependent damping, which contains Rayleigh damping) is preferred only when both its
-    criterion charged with its discretisation credit is lower (ranking.credited) and its
+    criterion charged with its discretisation credit is lower (`_charged`) and its
     leave-one-recording-out residual is lower by more than the noise fluctuation (with one
     train recording, the criterion alone). When exactly one of the two prefers it, the data
     cannot tell them apart: the smaller one is reported, confounded with the larger. Returns
@@ -414,14 +417,14 @@ def _resolve_nested(ranked, cv_of, credit, tol, say):
     lb, ls = (cv_of(r["name"], r["_fit"]) for r in pair)
     # the extra parameters of the larger family may fit discretisation error on top of what the
     # smaller one does: its criterion is charged all it can mimic of that error (its credit,
-    # ranking.py, at face value: a located region's credit is already scaled to the conservative
-    # floor, all the mesh error the data can hold; ranking.beats' CREDIT_FACTOR margin on top
-    # asked a region to gain 2.5x more than any mimicry could, and a true region was never
-    # preferred), and its cross-validation must agree. (A located region is kept fixed here:
-    # re-locating it per fold from the other recording alone was tried and is too poor with two
-    # train recordings, e.g. the named heterogeneity bar 0.31 vs 0.13.)
+    # ranking.py, at face value, not CREDIT_FACTOR times it as between unrelated families: a
+    # located region's credit is already scaled to the conservative floor, all the mesh error
+    # the data can hold, and 2.5x that asked a region to gain more than any mimicry could; a
+    # true region was never preferred), and its cross-validation must agree. (A located region
+    # is kept fixed here: re-locating it per fold from the other recording alone was tried and
+    # is too poor with two train recordings, e.g. the named heterogeneity bar 0.31 vs 0.13.)
     gain = small["rss"] - big["rss"]
-    by_score = ranking.credited(big, credit) < ranking.credited(small, credit)
+    by_score = _charged(big, credit) < _charged(small, credit)
     # a leave-one-recording-out difference within the noise fluctuation is no evidence
     by_cv = by_score if lb is None else lb < ls - tol.get(big["name"], 0.0)
     say(f"nested {big['name']} vs {small['name']}: score {big['score']:.1f} vs {small['score']:.1f}, "
@@ -434,6 +437,12 @@ def _resolve_nested(ranked, cv_of, credit, tol, say):
     if by_score or by_cv:
         forced["_ties"] = [(small["name"], big["name"])]
     return small, forced
+
+
+def _charged(row, credit):
+    """The criterion of a fit charged its discretisation credit at face value (rss + credit)."""
+    rss = row["rss"] + credit.get(row["name"], 0.0)
+    return fitting.score(rss, *row["_criterion"]) if "_criterion" in row else rss
 
 
 def _forward_select(P, ctx, selected, ranked, verdict, n_eff, floor, rss0, say, max_effects=3):
