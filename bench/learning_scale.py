@@ -8,8 +8,9 @@ from a 1 N tip load; train recording --duration s with markers on --marker-fract
 surface vertices at --frame-rate Hz; the simulation (and space-time) runs at 1 ms. The case is
 built once into --work (its truth simulation is not part of the learning time).
 
-The extrapolation candidates are the library default (LearnOptions.extrapolation =
-fit.EXTRAPOLATION_WEIGHTS, as the `learn` CLI). Options at scale (printed and written to the JSON): ridge_search "first" (one fit and one
+The extrapolation candidates are the library default (LearnOptions.extrapolation: the free
+family only); --penalised-family adds fit.EXTRAPOLATION_WEIGHTS' penalised one, as the `learn`
+CLI does. Options at scale (printed and written to the JSON): ridge_search "first" (one fit and one
 forward check per iteration instead of one per smoothing candidate), tangent_stride (frames
 sharing one tangent evaluation in the space-time Jacobian), --iterations (max outer
 iterations), --gn-tolerance (a space-time solve stops when a step gains less than this fraction;
@@ -45,6 +46,7 @@ from pathlib import Path
 
 from matlearn import meshes
 from matlearn.learning import loop
+from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS
 from matlearn.learning.loop import LearnOptions, learn
 from matlearn.materials import Damping, Material
 from matlearn.scene import load_scene
@@ -159,6 +161,9 @@ def main(argv=None) -> int:
     ap.add_argument("--retry-rejected", action="store_true",
                     help="after a rejected update, solve again with the candidate's motion in the basis")
     ap.add_argument("--no-early-stop", action="store_true", help="simulate every candidate check to the end")
+    ap.add_argument("--penalised-family", action="store_true",
+                    help="extrapolation candidates fit.EXTRAPOLATION_WEIGHTS (as the learn CLI) instead of "
+                         "the library default (free family only)")
     ap.add_argument("--work", default="/tmp/matlearn_learning_scale")
     ap.add_argument("--stride-check", action="store_true",
                     help="only compare iteration 0's space-time solve at tangent stride 1 and "
@@ -179,7 +184,8 @@ def main(argv=None) -> int:
     opt = LearnOptions(iterations=args.iterations, ridge_search=args.ridge_search,
                        tangent_stride=args.tangent_stride, jacobian_every=args.jacobian_every,
                        gn_tolerance=args.gn_tolerance, retry_rejected=args.retry_rejected,
-                       early_stop=not args.no_early_stop)
+                       early_stop=not args.no_early_stop,
+                       **({"extrapolation": EXTRAPOLATION_WEIGHTS} if args.penalised_family else {}))
     run = work / f"run_{sc.mesh.num_tets}"
     shutil.rmtree(run, ignore_errors=True)
     code = commit()  # the code that runs (read before the run: the tree may change meanwhile)

@@ -49,8 +49,8 @@ from ..clouds.tracking import TrackOptions, refresh_markers
 from ..embedding import embed_points
 from ..recording import load_recording
 from ..replay import initial_state, interpolate_frames, simulate_recording, simulation_times
-from .fit import (EXTRAPOLATION_WEIGHTS, FitFrames, RbfParams, extension_probes, fit_system,
-                  project_linear_part, solve_fit, tangent_margin)
+from .fit import (FitFrames, RbfParams, extension_probes, fit_system, project_linear_part,
+                  solve_fit, tangent_margin)
 from .initial import initial_trajectory
 from .pod import pod_basis
 from .spacetime import build_problem, constrained_vertices, solve_spacetime
@@ -87,9 +87,12 @@ class LearnOptions:
     fit's tangent penalty (fit.py: the RBF part's tangent relative to the nominal modulus)
     and ridges: relative numerical Tikhonov weights; extrapolation: (linear, edge) weight
     pairs of the penalties on what the correction does beyond the data (fit.solve_fit: the
-    linear part A and the RBF part's slope where it leaves the data; (0, 0): none; the default
-    fit.EXTRAPOLATION_WEIGHTS is the free family followed by a penalised one, as the `learn` CLI
-    and bench/learning_table.py use it); every
+    linear part A and the RBF part's slope where it leaves the data; (0, 0), the default: none;
+    fit.EXTRAPOLATION_WEIGHTS, which the `learn` CLI and bench/learning_table.py pass, adds a
+    penalised family. It is not the library default because of its cost at scale: on the 6k-tet
+    bar of bench/learning_scale.py its 4 extra checks in the rejected iteration cost 3.5 forward
+    simulations although each stopped after 4 % of the steps: 15.9x the forward simulation in
+    all, bench/results/learning_scale.json `extrapolation_variant`); every
     (extrapolation, smoothing, ridge) triple is a candidate per iteration (the best train
     error wins; when none is stable and simulable, up to `escalate` more with 10x, 100x the
     largest smoothing weight are tried before the update is shortened); ridge_search: "all" (fit and
@@ -136,7 +139,7 @@ class LearnOptions:
     backtrack: tuple = (0.5, 0.25)
     track: TrackOptions | None = None
     smoothing: tuple = (1e-3, 1e-2, 1e-1, 1.0)
-    extrapolation: tuple = EXTRAPOLATION_WEIGHTS
+    extrapolation: tuple = ((0.0, 0.0),)
     escalate: int = 2
     tangent_stride: int = 1
     refresh_correspondences: int = 0
