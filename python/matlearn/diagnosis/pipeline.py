@@ -182,17 +182,18 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     cheap["density"] = (-cheap["stiffness_scale"][0], cheap["stiffness_scale"][1])
     # what each family could gain by mimicking the mesh's discretisation error (ranking.py), from
     # the raw sensitivities: the debiased ones are blind to the discrepancy's direction
-    # (the located region's own columns: a region located where the mesh errs absorbs the
-    # discrepancy and gets a large credit, one located elsewhere does not. Re-locating a region
-    # on the discrepancy itself, as before, charged every region the worst case: the named
-    # heterogeneity bar's region, 5x below the stiffness scale's rss and in leave-one-out, lost.)
+    # (a located region's credit is that of a region re-located on the discrepancy itself: the
+    # worst case. Its own columns' credit was tried: the tiny uniformly stiffer test bar
+    # (test_diagnosis.py) was then called a region.)
     credit = ranking.discretisation_credit(J_raw, d_res, slice(0, len(d_res)), d_scale,
-                                           j_offset=J_raw["stiffness_scale"][:, 0])
+                                           j_offset=J_raw["stiffness_scale"][:, 0],
+                                           region=(Jp_raw, fitting.locate_region))
     credit["density"] = credit["stiffness_scale"]
     # A located region chooses where it acts from the data: it can sit wherever the truth's mesh
     # error is left after the correction, whose size only the conservative floor bounds (a
-    # truth in another pattern, a model 1-2 tets across: up to ~2 |b|^2). Its credit is scaled
-    # like that floor; the other families act everywhere or at a fixed place (the clamp).
+    # truth in another pattern, a model 1-2 tets across: up to ~2 |b|^2). Its credit (measured
+    # with the region re-located on the discrepancy itself) is scaled like that floor; the
+    # other families act everywhere or at a fixed place (the clamp).
     credit["heterogeneity"] *= (rss_disc_wide / rss_disc) if rss_disc > 0 else 1.0
     tol = {n: ranking.noise_tolerance(rss_noise, len(r0), _dof(n)) for n in cheap}
     say("discretisation credit: " + ", ".join(f"{n} {c:.2e}" for n, c in credit.items()))
