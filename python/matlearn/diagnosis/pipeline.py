@@ -149,7 +149,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # the region: the two-level split of the per-patch stiffness map fitted on simulations
     # (region.patch_map; the linearisation at the baseline misplaces it, see region.py); the
     # location linearised at the baseline stays a rival (its two levels from the same linear
-    # fit), the simulated residual of the two decides. (Choosing the map's threshold by the
+    # fit), used when its simulated residual is lower by more than noise explains. (Choosing the map's threshold by the
     # simulated residual too was tried: it grows the region into the mesh's error, named
     # heterogeneity bar IoU 0.45 vs 0.66.)
     def two_level_rss(mask, ab):
@@ -164,7 +164,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     ab_lin, _ = fitting.linear_fit(np.stack([Jp[:, sel_lin].sum(axis=1), Jp[:, ~sel_lin].sum(axis=1)], axis=1), r0)
     rss_split, rss_lin = two_level_rss(sel, het_start), two_level_rss(sel_lin, ab_lin)
     say(f"region: patch map split rss {rss_split:.3e}, linearised location rss {rss_lin:.3e}")
-    if rss_lin < rss_split:
+    if rss_lin < rss_split - ranking.noise_tolerance(rss_noise, len(r0), 2):
         sel, het_start = sel_lin, tuple(float(x) for x in ab_lin)
     ctx.region = np.isin(labels, np.flatnonzero(sel))
     say(f"patch map (log E) {np.round(patch_theta, 2).tolist()}, region patches {np.flatnonzero(sel).tolist()}")
