@@ -76,3 +76,27 @@ def test_a_located_region_replaces_the_uniform_scale_when_it_fits_better_than_it
     best, _ = pipeline._resolve_nested([small, big], lambda name, fit: loo[name], credit, tol,
                                        lambda m: None)
     assert best["name"] == "stiffness_scale"
+
+
+def test_a_located_region_does_not_replace_a_uniform_scale_within_the_conservative_floor():
+    # the uniform scale leaves 0.0225, within the conservative floor 0.0258: all of it may be the
+    # truth's mesh error in another pattern, which a located region can follow (a 1.5x stiffer
+    # bar 1-2 tets across; the region gains 2.6x its credit measured on the refined mesh's pattern)
+    credit = {"heterogeneity": 3.1e-3, "stiffness_scale": 1.4e-4}
+    tol = {n: 1e-5 for n in credit}
+    big = _row("heterogeneity", 0.0147, n_eff=150, floor=2.2e-3)
+    small = _row("stiffness_scale", 0.0225, n_eff=150, floor=2.2e-3)
+    loo = {"heterogeneity": 0.0141, "stiffness_scale": 0.0231}
+    cv = lambda name, fit: loo[name]  # noqa: E731
+    best, forced = pipeline._resolve_nested([big, small], cv, credit, tol, lambda m: None, floor_wide=0.0258)
+    assert best["name"] == "stiffness_scale"
+    assert forced["_ties"] == [("stiffness_scale", "heterogeneity")]
+    best, _ = pipeline._resolve_nested([big, small], cv, credit, tol, lambda m: None, floor_wide=0.02)
+    assert best["name"] == "heterogeneity"
+    # a family whose pattern the physics fixes is judged on its measured credit
+    credit = {"strain_dependent_damping": 1.85e-4, "rayleigh_damping": 6.2e-5}
+    big = _row("strain_dependent_damping", 4.7e-3, n_eff=420, floor=7.3e-3)
+    small = _row("rayleigh_damping", 7.9e-3, n_eff=420, floor=7.3e-3)
+    loo = {"strain_dependent_damping": 6.0e-3, "rayleigh_damping": 1.14e-2}
+    best, _ = pipeline._resolve_nested([big, small], cv, credit, tol, lambda m: None, floor_wide=4.5e-2)
+    assert best["name"] == "strain_dependent_damping"
