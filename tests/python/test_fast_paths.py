@@ -131,4 +131,3 @@ def test_tangent_stride_reaches_the_same_trajectory():
         errs.append(np.abs(out["X"] - X).max() / np.abs(X - X0).max())
     assert errs[0] < 1e-4, errs
     assert errs[1] < 1e-4, errs
-
