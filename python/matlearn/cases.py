@@ -118,6 +118,21 @@ def bar_damping_2():
     return _damping_bar("bar_damping_2", [0.3, 2.0])
 
 
+def _coarsened_bar_case(name, fine, E, coarse, notes):
+    """A co-rotated truth with per-tet Young's modulus E (Pa) on the fine bar, learned on `coarse`
+    with the nominal E = 3e6 Pa: trained on a bend in y and a twist, tested on a bend in z and on a
+    larger bend in y with a twist (the layered-bar rows)."""
+    tip = [[0.105, -1, -1], [1, 1, 1]]
+    return CaseSpec(name, dict(
+        truth_mesh=fine, truth_material=Material("corotated", E, 0.40, 1000.0),
+        truth_damping=Damping(0.0, 0.002), model_mesh=coarse,
+        nominal_material=Material("corotated", 3e6, 0.40, 1000.0), nominal_damping=Damping(0.0, 0.002),
+        fixed_box=[[-1, -1, -1], [1e-4, 1, 1]], marker_fraction=1.0,
+        motions=[_release("train", tip, [0, 0.6, 0.0]), _release("train", tip, None, twist=[0.004, 0, 0]),
+                 _release("test", tip, [0, 0, 0.6]), _release("test", tip, [0, 1.0, 0.0], twist=[0.004, 0, 0])]),
+        notes=notes)
+
+
 def _alternating_layers(mesh, cells, axis):
     """Per-tet layer label 0/1 alternating with the fine cell index along `axis` (layers one fine
     cell thick)."""
@@ -132,14 +147,8 @@ def layered_bar():
     fine = meshes.bar(0.12, 0.02, 0.02, cells=cells)
     coarse = meshes.bar(0.12, 0.02, 0.02, cells=tuple(c // 2 for c in cells))
     E = np.where(_alternating_layers(fine, cells, axis=2) == 1, 1e7, 1e5)
-    tip = [[0.105, -1, -1], [1, 1, 1]]
-    return CaseSpec("layered_bar", dict(
-        truth_mesh=fine, truth_material=Material("corotated", E, 0.40, 1000.0),
-        truth_damping=Damping(0.0, 0.002), model_mesh=coarse,
-        nominal_material=Material("corotated", 3e6, 0.40, 1000.0), nominal_damping=Damping(0.0, 0.002),
-        fixed_box=[[-1, -1, -1], [1e-4, 1, 1]], marker_fraction=1.0,
-        motions=[_release("train", tip, [0, 0.6, 0.0]), _release("train", tip, None, twist=[0.004, 0, 0]),
-                 _release("test", tip, [0, 0, 0.6]), _release("test", tip, [0, 1.0, 0.0], twist=[0.004, 0, 0])]),
+    return _coarsened_bar_case(
+        "layered_bar", fine, E, coarse,
         notes="paper Fig. 17: truth on a fine 8x4x4-cell bar whose materials E=1e5 / 1e7 alternate layer by "
               "layer, one fine cell thick, stacked in z (4 layers, soft at the bottom); model: co-rotated "
               "E=3e6 on the 4x2x2-cell mesh coarsened by 2 in each axis, so every coarse cell holds one "
@@ -157,14 +166,8 @@ def layered_bar_halves():
     fine, layer = meshes.layered_bar(0.12, 0.02, 0.02, cells=(8, 2, 4))
     coarse = meshes.bar(0.12, 0.02, 0.02, cells=(4, 1, 2))
     E = np.where(layer == 1, 1e7, 1e5)
-    tip = [[0.105, -1, -1], [1, 1, 1]]
-    return CaseSpec("layered_bar_halves", dict(
-        truth_mesh=fine, truth_material=Material("corotated", E, 0.40, 1000.0),
-        truth_damping=Damping(0.0, 0.002), model_mesh=coarse,
-        nominal_material=Material("corotated", 3e6, 0.40, 1000.0), nominal_damping=Damping(0.0, 0.002),
-        fixed_box=[[-1, -1, -1], [1e-4, 1, 1]], marker_fraction=1.0,
-        motions=[_release("train", tip, [0, 0.6, 0.0]), _release("train", tip, None, twist=[0.004, 0, 0]),
-                 _release("test", tip, [0, 0, 0.6]), _release("test", tip, [0, 1.0, 0.0], twist=[0.004, 0, 0])]),
+    return _coarsened_bar_case(
+        "layered_bar_halves", fine, E, coarse,
         notes="extra row, no target (the layered bar of sessions 1-5): the truth's bottom half (z < 0) "
               "E=1e5, top half 1e7, on a fine 8x2x4-cell mesh, so every cell of the 4x1x2-cell coarse "
               "model is of one material; model: co-rotated E=3e6; trained on a bend and a twist")
