@@ -136,13 +136,18 @@ def stiffness_jacobian(problem, ctx, params: dict, directions, recs=None, fd_ste
     return np.concatenate(rs), np.concatenate(Js, axis=0)
 
 
-def _scaled(ctx, params, log_scale):
-    """The model of `params` with every element's Young's modulus times exp(log_scale[e])."""
+def scaled_context(ctx, log_scale):
+    """A copy of ctx whose Young's modulus is times exp(log_scale[e]) per element."""
     from dataclasses import replace
-
-    from .effects import build_model
 
     E = np.broadcast_to(np.asarray(ctx.material.youngs_modulus, float), (ctx.mesh.num_tets,))
     c2 = replace(ctx, material=replace(ctx.material, youngs_modulus=E * np.exp(log_scale)))
     c2.clamp_layer = ctx.clamp_layer
-    return build_model(c2, params)
+    return c2
+
+
+def _scaled(ctx, params, log_scale):
+    """The model of `params` with every element's Young's modulus times exp(log_scale[e])."""
+    from .effects import build_model
+
+    return build_model(scaled_context(ctx, log_scale), params)

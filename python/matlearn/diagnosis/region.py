@@ -32,18 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linearised import stiffness_jacobian
-
-
-def _with_log_stiffness(ctx, log_e):
-    """A copy of ctx whose Young's modulus is times exp(log_e) per element (no region)."""
-    from dataclasses import replace
-
-    E = np.broadcast_to(np.asarray(ctx.material.youngs_modulus, float), (ctx.mesh.num_tets,))
-    c2 = replace(ctx, material=replace(ctx.material, youngs_modulus=E * np.exp(log_e)))
-    c2.clamp_layer = ctx.clamp_layer
-    c2.region = None
-    return c2
+from .linearised import scaled_context, stiffness_jacobian
 
 
 def _debiased_jacobian(problem, r, J):
@@ -74,7 +63,7 @@ def patch_map(problem, ctx, labels, iterations: int = 5, pull: float = 0.02, max
     k = int(labels.max()) + 1
     D = (labels[:, None] == np.arange(k)[None]).astype(float)
     th = np.zeros(k)
-    r, J = stiffness_jacobian(problem, _with_log_stiffness(ctx, D @ th), {}, D)
+    r, J = stiffness_jacobian(problem, scaled_context(ctx, D @ th), {}, D)
     J = _debiased_jacobian(problem, r, J)
     cur, damp = float(r @ r), 1.0
     for it in range(iterations):
@@ -88,7 +77,7 @@ def patch_map(problem, ctx, labels, iterations: int = 5, pull: float = 0.02, max
             if np.abs(step).max() > max_step:
                 step *= max_step / np.abs(step).max()
             tn = np.clip(th + step, -4.0, 4.0)
-            rn = marker_residual(problem, build_model(_with_log_stiffness(ctx, D @ tn), {}))
+            rn = marker_residual(problem, build_model(scaled_context(ctx, D @ tn), {}))
             if float(rn @ rn) < cur:
                 accepted = True
                 break
@@ -101,21 +90,20 @@ def patch_map(problem, ctx, labels, iterations: int = 5, pull: float = 0.02, max
             progress(f"patch map iteration {it + 1}: rss {cur:.3e} -> {float(rn @ rn):.3e}")
         cur = float(rn @ rn)
         if it + 1 < iterations:
-            r, J = stiffness_jacobian(problem, _with_log_stiffness(ctx, D @ th), {}, D)
+            r, J = stiffness_jacobian(problem, scaled_context(ctx, D @ th), {}, D)
             J = _debiased_jacobian(problem, r, J)
         if gain < 0.01 * cur:
             break
     return th, cur, J.T @ J
 
 
-def split_patches(theta, H, volumes, evaluate=None):
+def split_patches(theta, H, volumes):
     """Two-level approximation of a patch map: patches sorted by theta; every threshold gives a
     (region value, rest value) pair, the weighted means of its two sides with weights
     sqrt(precision x volume) (precision: diag H, both normalised to mean 1). The threshold is the
-    one whose two-level model leaves the least simulated residual, evaluate(mask, (a, b)) -> rss
-    (the data decide: a weighted-error criterion alone isolates single noisy patches), or without
-    `evaluate` the least weighted squared error to the map. Returns (region mask over patches:
-    the level farther from the baseline 0, (region value, rest value))."""
+    one with the least weighted squared error to the map (choosing it by the simulated residual
+    was tried: pipeline.diagnose). Returns (region mask over patches: the level farther from the
+    baseline 0, (region value, rest value))."""
     theta = np.asarray(theta, float)
     d = np.diag(np.asarray(H, float))
     v = np.asarray(volumes, float)
@@ -128,10 +116,7 @@ def split_patches(theta, H, volumes, evaluate=None):
         b = float(np.average(theta[hi], weights=w[hi]))
         sel = np.zeros(len(theta), bool)
         sel[lo] = True
-        if evaluate is not None:
-            err = float(evaluate(sel, (a, b)))
-        else:
-            err = float(w[lo] @ (theta[lo] - a) ** 2 + w[hi] @ (theta[hi] - b) ** 2)
+        err = float(w[lo] @ (theta[lo] - a) ** 2 + w[hi] @ (theta[hi] - b) ** 2)
         if err < best[0]:
             best = (err, sel, (a, b))
     if best[1] is None:
