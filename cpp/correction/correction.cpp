@@ -33,28 +33,38 @@ RbfCorrection::RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bia
     throw InvalidInput("RbfCorrection: parameters contain NaN or Inf");
 }
 
+void RbfCorrection::element(const Vec3& s, Vec3& p, double& da, Mat3* J) const {
+  const Vec3 sc = lo_.size() == 3 ? Vec3(s.cwiseMax(lo_).cwiseMin(hi_)) : s;
+  // Inside the box the extension term is an exact +0 (phi + (+-0) / phi == phi), so the values
+  // alone (J == nullptr) take phi there: bitwise the kernel values of the full evaluation.
+  const bool phi_only = J == nullptr && sc == s;
+  const bool damp = wa_.size() > 0;
+  p = A_ * (s - Vec3::Ones()) + b_;
+  da = a0_;
+  if (J) *J = A_;
+  Vec3 g;
+  double phi_c = 0;
+  for (int k = 0; k < c_.rows(); ++k) {
+    const Vec3 w = w_.row(k).transpose();
+    if (phi_only) {
+      phi_c = std::sqrt((sc - c_.row(k).transpose()).squaredNorm() + eps_ * eps_);
+      p += w * phi_c;
+    } else {
+      p += w * extended_kernel(s, sc, c_.row(k).transpose(), eps_, J ? &g : nullptr, &phi_c);
+      if (J) *J += w * g.transpose();
+    }
+    if (damp) da += wa_[k] * phi_c;
+  }
+}
+
 void RbfCorrection::evaluate(const MatX3& Fh, const MatX3&, CorrectionOutput& out) const {
   const int m = Fh.rows();
   resize_output(m, out);
-  const bool damp = wa_.size() > 0, box = lo_.size() == 3;
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < m; ++e) {
-    const Vec3 s = Fh.row(e).transpose();
-    Vec3 p = A_ * (s - Vec3::Ones()) + b_;
-    Mat3 J = A_;
-    double da = a0_;
-    const Vec3 sc = box ? Vec3(s.cwiseMax(lo_).cwiseMin(hi_)) : s;
-    Vec3 g;
-    double phi_c = 0;
-    for (int k = 0; k < c_.rows(); ++k) {
-      const Vec3 w = w_.row(k).transpose();
-      p += w * extended_kernel(s, sc, c_.row(k).transpose(), eps_, &g, &phi_c);
-      J += w * g.transpose();
-      if (damp) da += wa_[k] * phi_c;
-    }
+    Vec3 p;
+    element(Fh.row(e).transpose(), p, out.dalpha[e], &out.d_dFh[e]);
     out.dPh.row(e) = p.transpose();
-    out.d_dFh[e] = J;
-    out.dalpha[e] = da;
   }
 }
 
@@ -64,31 +74,11 @@ void RbfCorrection::evaluate_values(const MatX3& Fh, const MatX3&, CorrectionOut
   out.d_dFh.clear();
   out.d_dFhdot.clear();
   out.dalpha.resize(m);
-  const bool damp = wa_.size() > 0, box = lo_.size() == 3;
-  const double eps2 = eps_ * eps_;
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < m; ++e) {
-    const Vec3 s = Fh.row(e).transpose();
-    Vec3 p = A_ * (s - Vec3::Ones()) + b_;
-    double da = a0_;
-    const Vec3 sc = box ? Vec3(s.cwiseMax(lo_).cwiseMin(hi_)) : s;
-    if (sc == s) {
-      // extended_kernel with delta = 0: phi + (+-0) / phi == phi exactly
-      for (int k = 0; k < c_.rows(); ++k) {
-        const Vec3 d = sc - c_.row(k).transpose();
-        const double phi = std::sqrt(d.squaredNorm() + eps2);
-        p += w_.row(k).transpose() * phi;
-        if (damp) da += wa_[k] * phi;
-      }
-    } else {
-      double phi_c = 0;
-      for (int k = 0; k < c_.rows(); ++k) {
-        p += w_.row(k).transpose() * extended_kernel(s, sc, c_.row(k).transpose(), eps_, nullptr, &phi_c);
-        if (damp) da += wa_[k] * phi_c;
-      }
-    }
+    Vec3 p;
+    element(Fh.row(e).transpose(), p, out.dalpha[e], nullptr);
     out.dPh.row(e) = p.transpose();
-    out.dalpha[e] = da;
   }
 }
 

@@ -51,6 +51,9 @@ class RbfCorrection final : public Correction {
   void evaluate_values(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
 
  private:
+  /// One element: dPh `p` and dalpha `da` at stretches s, and with J != nullptr dPh's Jacobian.
+  void element(const Vec3& s, Vec3& p, double& da, Mat3* J) const;
+
   MatX3 c_, w_;
   Mat3 A_;
   Vec3 b_;

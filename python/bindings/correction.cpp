@@ -41,16 +41,26 @@ class PythonCorrection final : public Correction {
   py::function fn_;
 };
 
+/// Fh and Fhdot checked as (m, 3) arrays, then evaluate (values_only: evaluate_values).
+static CorrectionOutput evaluate_checked(const Correction& c, const py::array& Fh, const py::array& Fhdot,
+                                         bool values_only) {
+  const MatX3 a = as_matrix<3>(Fh, "Fh");
+  const MatX3 b = as_matrix<3>(Fhdot, "Fhdot", a.rows());
+  CorrectionOutput out;
+  if (values_only)
+    c.evaluate_values(a, b, out);
+  else
+    c.evaluate(a, b, out);
+  return out;
+}
+
 void define_correction(py::module_& m) {
   py::class_<Correction, std::shared_ptr<Correction>>(m, "Correction")
       .def(
           "evaluate",
           [](const Correction& c, const py::array& Fh, const py::array& Fhdot) {
-            const MatX3 a = as_matrix<3>(Fh, "Fh");
-            const MatX3 b = as_matrix<3>(Fhdot, "Fhdot", a.rows());
-            CorrectionOutput out;
-            c.evaluate(a, b, out);
-            const long n = a.rows();
+            const CorrectionOutput out = evaluate_checked(c, Fh, Fhdot, false);
+            const long n = out.dPh.rows();
             py::array_t<double> J({n, 3L, 3L}), Jd({n, 3L, 3L});
             auto Ju = J.mutable_unchecked<3>();  // shapes fixed just above
             auto Jdu = Jd.mutable_unchecked<3>();
@@ -68,10 +78,7 @@ void define_correction(py::module_& m) {
       .def(
           "evaluate_values",
           [](const Correction& c, const py::array& Fh, const py::array& Fhdot) {
-            const MatX3 a = as_matrix<3>(Fh, "Fh");
-            const MatX3 b = as_matrix<3>(Fhdot, "Fhdot", a.rows());
-            CorrectionOutput out;
-            c.evaluate_values(a, b, out);
+            const CorrectionOutput out = evaluate_checked(c, Fh, Fhdot, true);
             return py::make_tuple(out.dPh, out.dalpha);
           },
           py::arg("Fh"), py::arg("Fhdot"),
