@@ -100,3 +100,56 @@ def test_a_located_region_does_not_replace_a_uniform_scale_within_the_conservati
     loo = {"strain_dependent_damping": 6.0e-3, "rayleigh_damping": 1.14e-2}
     best, _ = pipeline._resolve_nested([big, small], cv, credit, tol, lambda m: None, floor_wide=4.5e-2)
     assert best["name"] == "strain_dependent_damping"
+
+
+class _Fit:
+    def __init__(self, params):
+        self.params = params
+
+
+class _Ctx:
+    """A bar of 4 tets in a row along x, clamped at vertex 0 (tet 0 is the clamp layer; tet 1
+    shares a vertex with it, tets 2-3 do not)."""
+    def __init__(self, region):
+        class _M:
+            tets = np.array([[0, 1, 2, 3], [3, 4, 5, 6], [6, 7, 8, 9], [9, 10, 11, 12]])
+        self.mesh = _M()
+        self.clamp_layer = np.array([True, False, False, False])
+        self.region = np.asarray(region, bool)
+
+
+def _side_rows(t_support, t_region, lead):
+    S = {"name": "support_compliance", "rss": 1.0, "_fit": _Fit({"support_compliance": [t_support]}),
+         "confounded_with": ["heterogeneity"]}
+    H = {"name": "heterogeneity", "rss": 1.0, "_fit": _Fit({"heterogeneity": list(t_region)}),
+         "confounded_with": ["support_compliance"]}
+    X = {"name": "stiffness_scale", "rss": 1.0, "_fit": _Fit({"stiffness_scale": [0.1]}), "confounded_with": []}
+    return ([S, H, X] if lead == "support_compliance" else [H, S, X])
+
+
+def test_a_clamp_layer_fitted_stiffer_is_a_region_not_a_compliant_support():
+    # named combined heterogeneity + tension plate: clamp layer 16x stiffer led, confounded with
+    # a stiff region at the clamp; a support can only add compliance to the rigid clamp
+    ranked = _side_rows(np.log(16.0), (np.log(2.5), np.log(0.85)), "support_compliance")
+    side = pipeline._support_or_region(ranked, _Ctx([1, 1, 0, 0]), lambda m: None)
+    assert side == {"heterogeneity": "support_compliance"} and ranked[0]["name"] == "heterogeneity"
+    # a softer clamp layer stays the support
+    ranked = _side_rows(np.log(0.5), (np.log(2.5), np.log(0.85)), "support_compliance")
+    assert pipeline._support_or_region(ranked, _Ctx([1, 1, 0, 0]), lambda m: None) == {}
+    assert ranked[0]["name"] == "support_compliance"
+
+
+def test_a_soft_region_at_the_clamp_is_reported_as_a_compliant_support():
+    # r1_04: a soft layer thinner than the model's clamp-layer elements is located as a soft band
+    # next to the clamp; with the clamp layer also fitted softer it is the support's compliance
+    ranked = _side_rows(np.log(0.57), (np.log(0.54), np.log(0.92)), "heterogeneity")
+    side = pipeline._support_or_region(ranked, _Ctx([0, 1, 0, 0]), lambda m: None)
+    assert side == {"support_compliance": "heterogeneity"}
+    assert ranked[0]["name"] == "support_compliance"
+    # a soft region away from the clamp (tets 2-3 share no vertex with the clamp layer) stays a region
+    ranked = _side_rows(np.log(0.57), (np.log(0.54), np.log(0.92)), "heterogeneity")
+    assert pipeline._support_or_region(ranked, _Ctx([0, 0, 1, 1]), lambda m: None) == {}
+    # a stiff region at the clamp stays a region
+    ranked = _side_rows(np.log(0.57), (np.log(1.8), np.log(0.92)), "heterogeneity")
+    assert pipeline._support_or_region(ranked, _Ctx([0, 1, 0, 0]), lambda m: None) == {}
+    assert ranked[0]["name"] == "heterogeneity"

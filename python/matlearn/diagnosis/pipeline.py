@@ -259,7 +259,14 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         return cv[key]
 
     if above:
+        side = _support_or_region(ranked, ctx, say)
         best, forced = _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=rss_wide)
+        for winner, loser in side.items():
+            # a stiff clamp layer is the region's description: whatever the region's nested
+            # comparison chose (the uniform scale, where the region is not established) leads it
+            winner = best["name"] if loser == "support_compliance" else winner
+            forced.setdefault(winner, loser)
+            forced.setdefault("_ties", []).append((winner, loser))
         ranking.confounded(ranked, credit, tol, rss0, forced, rss_noise)
         _add_nested_ties(ranked, forced)
         ranked[:] = ranking.order(ranked, credit, tol, forced)
@@ -327,6 +334,8 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                         "score": hist["score"], "parameters": hist["parameters"],
                         "gap_after": after or (stateless[-1] if stateless else dict(gap_before)),
                         "outside_library": True})
+    for name in fitting.mark_held_out_changes(effects, verdict, gap_before):
+        say(f"adding {name} grows the held-out gap: the train recordings do not determine it there")
     lead = next((e for e in effects if verdict and e["name"] == verdict[0]), {})
     if "heterogeneity" in verdict or "heterogeneity" in lead.get("confounded_with", []):
         # the located region leads `where` when a heterogeneity is concluded, or is one of the
@@ -471,6 +480,53 @@ def _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=None):
     if by_score or by_cv:
         forced["_ties"] = [(small["name"], big["name"])]
     return small, forced
+
+
+def _at_support(region, clamp_layer, tets) -> bool:
+    """A located region lies at the support when most of its elements are within one element
+    layer of the clamp (share a vertex with the clamp layer's elements)."""
+    if region is None or clamp_layer is None or not np.any(region) or not np.any(clamp_layer):
+        return False
+    tets = np.asarray(tets)
+    near = np.isin(tets[region], np.unique(tets[clamp_layer])).any(axis=1)
+    return bool(near.mean() >= 0.5)
+
+
+def _support_or_region(ranked, ctx, say):
+    """A stiffness change at the clamp is described by two families: the clamp layer's scale
+    (support_compliance) and a located region touching the clamp (heterogeneity); the data
+    barely tell them apart. The physics does: a support can only add compliance to the rigid
+    clamp of the nominal model, so
+    * a clamp layer fitted *stiffer* than the body is a stiffer material near the clamp, not a
+      compliant support: where it leads and a located region explains the data as well
+      (confounded), the region leads;
+    * a located region that lies at the support (`_at_support`) and is *softer* than the rest,
+      with the clamp layer also fitted softer, is a compliant support whose soft layer the
+      model's clamp-layer elements do not match (thinner or partial): the support leads, the
+      region is reported as equally explaining (confounded).
+    Moves the new lead to the front of `ranked`; returns {winner: loser} for the ordering (each
+    also recorded as a tie, so both names carry confounded_with)."""
+    rows = {r["name"]: r for r in ranked}
+    S, H = rows.get("support_compliance"), rows.get("heterogeneity")
+    if not ranked or S is None or H is None or S["_fit"] is None or H["_fit"] is None:
+        return {}
+    t_s = float(np.asarray(S["_fit"].params.get("support_compliance", [0.0]), float)[0])
+    t_h = np.asarray(H["_fit"].params.get("heterogeneity", [0.0, 0.0]), float)
+    t_h = np.append(t_h, 0.0)[:2] if t_h.size < 2 else t_h
+    out = {}
+    if ranked[0] is S and t_s > 0 and "heterogeneity" in S.get("confounded_with", []):
+        out = {"heterogeneity": "support_compliance"}
+        lead = H
+    elif (ranked[0] is H and t_s < 0 and t_h[0] < t_h[1]
+          and _at_support(ctx.region, ctx.clamp_layer, ctx.mesh.tets)):
+        out = {"support_compliance": "heterogeneity"}
+        lead = S
+    if out:
+        ranked.remove(lead)
+        ranked.insert(0, lead)
+        say(f"support vs region at the clamp: clamp layer log scale {t_s:.2f}, region/rest "
+            f"{t_h[0]:.2f}/{t_h[1]:.2f}: {lead['name']} leads")
+    return out
 
 
 def _charged(row, credit):
