@@ -131,7 +131,8 @@ def write_report(out, problem, ctx, result, shares, field, fits, selected, patch
     rows = "".join(
         f"<tr><td>{html.escape(e['name'])}</td><td>{e['explained']:.3f}</td><td>{e['score']:.1f}</td>"
         f"<td>{html.escape(json.dumps(e['parameters']))}</td>"
-        f"<td>{'' if not e.get('gap_after') else '%.2f / %.2f' % (e['gap_after']['max_error_pct'], e['gap_after']['rms_error_pct'])}</td>"
+        f"<td>{'' if not e.get('gap_after') else '%.2f / %.2f' % (e['gap_after']['max_error_pct'], e['gap_after']['rms_error_pct'])}"
+        f"{' (grows the held-out gap)' if e.get('held_out_worse') else ''}</td>"
         f"<td>{html.escape(', '.join(e.get('confounded_with', [])))}</td></tr>"
         for e in eff)
     gb = result["gap_before"]
