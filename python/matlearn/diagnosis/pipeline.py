@@ -336,8 +336,6 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                         "outside_library": True})
     for name in fitting.mark_held_out_changes(effects, verdict, gap_before):
         say(f"adding {name} grows the held-out gap: the train recordings do not determine it there")
-    for name in fitting.mark_held_out_changes(effects, verdict, gap_before):
-        say(f"adding {name} grows the held-out gap: the train recordings do not determine it there")
     lead = next((e for e in effects if verdict and e["name"] == verdict[0]), {})
     if "heterogeneity" in verdict or "heterogeneity" in lead.get("confounded_with", []):
         # the located region leads `where` when a heterogeneity is concluded, or is one of the
