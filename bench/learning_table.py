@@ -31,13 +31,14 @@ from matlearn.learning.baseline import baseline_test_errors, fit_parameters
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS
 from matlearn.learning.start import MODES, learn_from
 from matlearn.materials import make_model
-from matlearn.replay import score
+from matlearn.replay import SCORE_START, STARTS, score
 from matlearn.scene import load_scene
 
 RESULTS = Path(__file__).parent / "results" / "learning_table.json"
 
 
-def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str, start_evals: int) -> dict:
+def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str, start_evals: int,
+             start_pose: str = "held") -> dict:
     path = cases.build(spec, work / "cases")
     scene = load_scene(path)
     test_recs = scene.recordings_with_role("test")
@@ -63,13 +64,16 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
     floor = truth_replay_errors(spec, path, scene)
     t0 = time.time()
     # the extrapolation (linear part, RBF edge slope) both free and penalised (fit.EXTRAPOLATION_WEIGHTS)
-    opts = LearnOptions(iterations=iterations, **{"extrapolation": EXTRAPOLATION_WEIGHTS, **spec.learn})
+    opts = LearnOptions(iterations=iterations, **{"extrapolation": EXTRAPOLATION_WEIGHTS, "start_pose": start_pose,
+                                                  **spec.learn})
     run_dir = work / "runs" / spec.name
     if run_dir.exists():
         shutil.rmtree(run_dir)
     log = lambda *a: print("   ", *a, flush=True)  # noqa: E731
     # best: both starts, the lower learned train error kept (learning/start.py)
-    lscene, sinfo, res, _ = learn_from(scene, start, run_dir, opts, warm=fits.get(scene.material.model),
+    # the baseline start fits E, nu, alpha_K of both laws (warm-started from the baseline fits)
+    # and starts from the one with the lower train rms
+    lscene, sinfo, res, _ = learn_from(scene, start, run_dir, opts, warm=fits, laws=BASELINE_LAWS,
                                        max_evaluations=start_evals, log=log)
     # wall_s: the start fit (3 parameters, start=baseline/best) and the learning loop(s)
     wall = time.time() - t0
@@ -94,7 +98,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
                                 "alpha_mass": fit["damping"].alpha_mass,
                                 "alpha_stiffness": fit["damping"].alpha_stiffness,
                                 "evaluations": fit["evaluations"], "wall_s": base_wall},
-        "start": start, "start_parameters": {k: sinfo.get(k) for k in ("material", "damping", "evaluations")},
+        "start": start, "train_start_pose": start_pose, "score_start": SCORE_START, "start_parameters": {k: sinfo.get(k) for k in ("material", "damping", "evaluations", "train_rms_pct_by_law")},
         **({"start_chosen": sinfo["chosen"], "learned_train_max_error_pct_by_start": sinfo["train_max_error_pct"],
             "test_max_error_pct_by_start": sinfo["test_per_recording_max_pct"]} if start == "best" else {}),
         "start_train_max_error_pct": res["nominal"]["train"]["max_error_pct"],
@@ -152,6 +156,9 @@ def main():
                          "learned train error kept (best, default)")
     ap.add_argument("--start-evals", type=int, default=10,
                     help="max function evaluations of the start fit (warm-started from the baseline)")
+    ap.add_argument("--start-pose", choices=STARTS, default="held",
+                    help="initial poses of the TRAIN recordings while learning (LearnOptions.start_pose); "
+                         "every model is scored on the test recordings with replay.SCORE_START")
     ap.add_argument("--work", default="/tmp/matlearn_learning_bench")
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--merge", nargs="+", default=None,
@@ -212,7 +219,7 @@ def main():
     for name in names:
         print(f"== {name}", flush=True)
         row = run_case(byname[name](), work, args.iterations, args.baseline_evals, args.start,
-                       args.start_evals)
+                       args.start_evals, args.start_pose)
         row.update({k: doc[k] for k in ("code_commit", "loop_commit", "uncommitted_changes")})
         doc["cases"] = [c for c in doc["cases"] if c["case"] != name] + [row]
         out.parent.mkdir(parents=True, exist_ok=True)

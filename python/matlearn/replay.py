@@ -72,6 +72,13 @@ def interpolate_frames(times: np.ndarray, values: np.ndarray, at: np.ndarray) ->
 
 
 # ---------------------------------------------------------------------------- initial state
+STARTS = ("held", "released")
+# The initial state every model is scored with (score, the learning loop's test errors): the
+# released start (release.py), which uses the frames of the first 1/8 of the model's lowest
+# period after the release besides frame 0.
+SCORE_START = "released"
+
+
 def _held_pose(scene, model, rec: Recording, frame: int, embedding: Embedding, integ=None,
                refine: int = 3):
     """Static equilibrium with marker-nearest and driven vertices prescribed at frame `frame`.
@@ -130,13 +137,19 @@ def _held_pose(scene, model, rec: Recording, frame: int, embedding: Embedding, i
 
 
 def initial_state(scene, model, rec: Recording, embedding: Embedding | None = None,
-                  velocity: str = "zero", refine: int = 3) -> tuple[np.ndarray, np.ndarray]:
+                  velocity: str = "zero", refine: int = 3, start: str = "held") -> tuple[np.ndarray, np.ndarray]:
     """(x0, v0), each (n, 3), at rec.times[0]; see the module docstring. velocity: "zero" or
-    "estimate"; refine: misfit-correction passes of the held pose (0 = nearest vertices only)."""
+    "estimate"; refine: misfit-correction passes of the held pose (0 = nearest vertices only);
+    start: "held" (the held pose) or "released" (:func:`release.released_start` from the held
+    pose: smooth hold forces and the first frames after the release; velocity zero only)."""
     n = scene.mesh.num_vertices
     V = np.asarray(scene.mesh.vertices, float)
     if velocity not in ("zero", "estimate"):
         raise ValueError(f"velocity must be 'zero' or 'estimate', got {velocity!r}")
+    if start not in STARTS:
+        raise ValueError(f"start must be one of {STARTS}, got {start!r}")
+    if start == "released" and velocity != "zero":
+        raise ValueError("start='released' estimates a pose released at rest: velocity must be 'zero'")
     if rec.at_rest_initially:
         return V.copy(), np.zeros((n, 3))
     if rec.num_markers == 0 and not rec.has_drive:
@@ -149,6 +162,10 @@ def initial_state(scene, model, rec: Recording, embedding: Embedding | None = No
     if not rec.seen[0].any() and not rec.has_drive:
         raise ValueError("initial_state: no marker is seen in frame 0")
     x0 = _held_pose(scene, model, rec, 0, emb, integ, refine)
+    if start == "released":
+        from .release import released_start
+
+        return released_start(scene, model, rec, emb, x0, integ), np.zeros((n, 3))
     if velocity == "zero" or rec.num_frames < 2:
         return x0, np.zeros((n, 3))
     x1 = _held_pose(scene, model, rec, 1, emb, integ, refine)
@@ -164,17 +181,23 @@ def simulation_times(scene, rec: Recording) -> np.ndarray:
 
 
 def simulate_recording(scene, model, rec: Recording, progress=None, state=None,
-                       f_ext=None, max_newton: int = 8, chunk: int | None = None, after_chunk=None):
+                       f_ext=None, max_newton: int = 8, chunk: int | None = None, after_chunk=None,
+                       steps: int | None = None):
     """Simulate over the recording's span at scene.time_step from `state` = (x0, v0) (default:
     :func:`initial_state`), honouring clamped and driven vertices, in one C++ call. Returns
     (sim_times (S+1,), X (S+1, n, 3), V (S+1, n, 3)). progress(done, total) is called from C++
     every few steps. after_chunk(steps_done, X_new): the simulation runs `chunk` steps per C++
     call and hands over each call's new frames (it may raise to stop the simulation early: a
-    bounded check); the trajectory is bitwise the one of a single call."""
+    bounded check); the trajectory is bitwise the one of a single call. steps: simulate only the
+    first `steps` steps (default: the whole span)."""
     n = scene.mesh.num_vertices
     x0, v0 = state if state is not None else initial_state(scene, model, rec)
     f = np.zeros((n, 3)) if f_ext is None else np.asarray(f_ext, float)
     sim_t = simulation_times(scene, rec)
+    if steps is not None:
+        if steps < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        sim_t = sim_t[:steps + 1]
     steps = len(sim_t) - 1
     integ = scene.integrator(model, max_newton=max_newton)
     didx, dtargets = drive_vertices(scene, rec)
@@ -252,16 +275,22 @@ def combine_errors(errors: list[dict]) -> dict:
     }
 
 
-def score(scene, model=None, role: str = "test", progress=None) -> dict:
-    """Replay every recording of `role` with `model` (default: the scene's nominal model) and
-    return {"recordings": [per-recording error dict], **pooled error}."""
+def score_recording(scene, model, rec: Recording, start: str = SCORE_START, progress=None) -> dict:
+    """The error dict (:func:`trajectory_error`) of one recording replayed with `model` from the
+    initial state `start`."""
+    emb = embed_points(scene.mesh, rec.marker_rest)
+    state = initial_state(scene, model, rec, emb, start=start)
+    sim = simulate_recording(scene, model, rec, progress, state=state)
+    return trajectory_error(predict_markers(scene, model, rec, sim=sim, embedding=emb), rec, scene.object_size)
+
+
+def score(scene, model=None, role: str = "test", progress=None, start: str = SCORE_START) -> dict:
+    """Replay every recording of `role` with `model` (default: the scene's nominal model) from
+    the initial state `start` (:func:`initial_state`; default SCORE_START, the protocol every
+    model is scored with) and return {"recordings": [per-recording error dict], **pooled error}."""
     model = model if model is not None else scene.model()
-    per = []
-    for rec in scene.recordings_with_role(role):
-        if rec.num_markers == 0:
-            continue
-        pred = predict_markers(scene, model, rec, progress=progress)
-        per.append(trajectory_error(pred, rec, scene.object_size))
+    per = [score_recording(scene, model, rec, start, progress)
+           for rec in scene.recordings_with_role(role) if rec.num_markers > 0]
     if not per:
         raise ValueError(f"score: the scene has no '{role}' recording with markers")
     return {"recordings": per, **combine_errors(per)}

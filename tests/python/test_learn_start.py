@@ -33,7 +33,7 @@ def test_learning_from_the_baseline_starts_at_it_and_never_ends_above_it(case, t
     assert info["damping"]["alpha_stiffness"] == pytest.approx(0.004, rel=0.1)
     # alpha_M is held at the nominal value (the learner has no mass-damping term to undo it)
     assert lscene.damping.alpha_mass == sc.damping.alpha_mass
-    base_train = score(sc, sc.model(material=lscene.material, damping=lscene.damping), "train")
+    base_train = score(sc, sc.model(material=lscene.material, damping=lscene.damping), "train", start="held")
     nominal_train = score(sc, sc.model(), "train")
     assert base_train["max_error_pct"] < nominal_train["max_error_pct"]
     res = learn(lscene, tmp_path / "run", LearnOptions(iterations=2, modes=12, centers=12), log=None)
@@ -141,3 +141,30 @@ def test_cli_best_start_keeps_the_lower_train_run_and_its_model_replays(case, tm
     sc = load_scene(case)
     learned = score(sc, scene_model(sc, out), "test")["recordings"][0]["max_error_pct"]
     assert learned == pytest.approx(summary["final"]["test"]["max_error_pct"], rel=1e-6)
+
+
+def test_baseline_start_keeps_the_law_with_the_lower_train_rms(case, monkeypatch):
+    """With several laws the start is the fit with the lowest train rms (its law becomes the
+    nominal law the correction is learned on), each fit warm-started from its own law's fit."""
+    from matlearn.materials import Damping, Material
+
+    sc = load_scene(case)
+    rms = {"corotated": 0.5, "neo_hookean": 0.1}
+    warmed = {}
+
+    def fake_fit(scene, law, max_evaluations=20, alpha_mass=None, start=None):
+        warmed[law] = start
+        return {"material": Material(law, 2e5 if law == "neo_hookean" else 3e5, 0.4, 1000.0),
+                "damping": Damping(alpha_mass, 0.004), "evaluations": 3, "train_rms_pct": rms[law]}
+
+    monkeypatch.setattr(start_mod, "fit_parameters", fake_fit)
+    warm = {law: {"material": Material(law, 1e5, 0.4, 1000.0)} for law in rms}
+    lscene, info = start_mod.baseline_start(sc, None, warm=warm, laws=tuple(rms))
+    assert lscene.material.model == "neo_hookean" and info["material"]["youngs_modulus"] == 2e5
+    assert info["train_rms_pct_by_law"] == rms
+    assert all(warmed[law] is warm[law] for law in rms)
+    rms["corotated"] = 0.05
+    assert start_mod.baseline_start(sc, None, warm=warm, laws=tuple(rms))[0].material.model == "corotated"
+    # default: the scene's own law only; a single warm fit is used for its own law only
+    lscene, info = start_mod.baseline_start(sc, None, warm=warm["neo_hookean"])
+    assert lscene.material.model == sc.material.model == "corotated" and warmed["corotated"] is None

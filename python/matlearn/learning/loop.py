@@ -48,7 +48,7 @@ from ..clouds.prepare import cloud_lambda, motion_scales, track_scene
 from ..clouds.tracking import TrackOptions, refresh_markers
 from ..embedding import embed_points
 from ..recording import load_recording
-from ..replay import initial_state, interpolate_frames, simulate_recording, simulation_times
+from ..replay import SCORE_START, STARTS, initial_state, interpolate_frames, simulate_recording, simulation_times
 from .fit import (FitFrames, RbfParams, extension_probes, fit_system, project_linear_part,
                   solve_fit, tangent_margin)
 from .initial import initial_trajectory
@@ -57,7 +57,7 @@ from .spacetime import build_problem, constrained_vertices, solve_spacetime
 
 
 _RESULT_MODULES = ("learning", "clouds", "replay.py", "embedding.py", "scene.py", "materials.py",
-                   "recording.py", "meshes.py")
+                   "recording.py", "meshes.py", "release.py")
 
 
 def code_fingerprint() -> str:
@@ -122,7 +122,9 @@ class LearnOptions:
     which lowers the train error, solve again with the rejected candidate's motion in the basis
     (while `patience` allows; False: stop there. At scale a retry costs a space-time solve and
     up to ~6 forward checks; on the 6k-tet bar of bench/learning_scale.py it gained 0.1 %
-    relative train error)."""
+    relative train error); start_pose: how the TRAIN recordings' initial poses are estimated
+    (replay.initial_state `start`: "held", the default, or "released"); the test recordings
+    are always scored with replay.SCORE_START, the protocol every model is scored with."""
 
     iterations: int = 8
     lam: float | None = None
@@ -147,6 +149,7 @@ class LearnOptions:
     gn_tolerance: float = 2e-3
     jacobian_every: int = 1
     retry_rejected: bool = True
+    start_pose: str = "held"
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
@@ -168,6 +171,8 @@ class LearnOptions:
             raise ValueError(f"tangent_stride must be >= 1, got {self.tangent_stride}")
         if self.refresh_correspondences < 0:
             raise ValueError(f"refresh_correspondences must be >= 0, got {self.refresh_correspondences}")
+        if self.start_pose not in STARTS:
+            raise ValueError(f"start_pose must be one of {STARTS}, got {self.start_pose!r}")
         if self.jacobian_every < 1:
             raise ValueError(f"jacobian_every must be >= 1, got {self.jacobian_every}")
         if not 0 <= self.gn_tolerance < 1:
@@ -176,12 +181,18 @@ class LearnOptions:
             raise ValueError(f"ridge_search must be 'all' or 'first', got {self.ridge_search!r}")
 
 
-def robust_initial_state(scene, model, rec, emb):
-    """replay.initial_state, retried without its marker-misfit refinement when that static
-    solve fails, and last with the nominal model's held pose (a learned correction can make
-    the static Newton solve of the held pose fail although dynamic steps, regularised by the
-    mass, are fine; the pose is then slightly inconsistent with the model, which the error
-    metric sees as a small initial transient)."""
+def robust_initial_state(scene, model, rec, emb, start: str = "held"):
+    """replay.initial_state (`start`: "held" or "released"), retried as the held pose, then
+    without its marker-misfit refinement when that static solve fails, and last with the
+    nominal model's held pose (a learned correction can make the static Newton solve of the
+    held pose fail although dynamic steps, regularised by the mass, are fine; the pose is then
+    slightly inconsistent with the model, which the error metric sees as a small initial
+    transient)."""
+    if start != "held":
+        try:
+            return initial_state(scene, model, rec, emb, start=start)
+        except RuntimeError:
+            pass
     try:
         return initial_state(scene, model, rec, emb)
     except RuntimeError:
@@ -206,7 +217,7 @@ class ErrorBoundExceeded(Exception):
 CHECK_CHUNKS = 25
 
 
-def _simulate_bounded(scene, model, rec, emb, bound, done_steps, total_steps):
+def _simulate_bounded(scene, model, rec, emb, bound, done_steps, total_steps, state):
     """simulate_recording in chunks (the trajectory is bitwise the one of a single call);
     raises ErrorBoundExceeded as soon as a marker error at a recording time already simulated
     exceeds `bound` (% of size): the score is a max over samples, so the rest of the simulation
@@ -229,25 +240,28 @@ def _simulate_bounded(scene, model, rec, emb, bound, done_steps, total_steps):
                 raise ErrorBoundExceeded(worst, (done_steps + s) / total_steps)
         t_done[0] = t_now
 
-    return simulate_recording(scene, model, rec, state=robust_initial_state(scene, model, rec, emb),
+    return simulate_recording(scene, model, rec, state=state,
                               chunk=max(10, int(np.ceil(steps / CHECK_CHUNKS))), after_chunk=check)
 
 
-def _errors(scene, model, recs, embs, bound=np.inf):
+def _errors(scene, model, recs, embs, bound=np.inf, start="held", states=None):
     """Per-recording marker errors (arrays of seen-sample errors, % of size) and simulations.
     With a finite `bound` (% of size) the simulations run in chunks and stop with
     ErrorBoundExceeded as soon as an error exceeds it (what the candidate checks of the loop
-    need: a candidate that cannot beat the bound is rejected without simulating the rest)."""
+    need: a candidate that cannot beat the bound is rejected without simulating the rest).
+    start: the initial-state estimator (robust_initial_state); states: given initial states
+    (x0, v0) per recording instead (None: estimated with `model`)."""
     out, sims = [], []
     size = scene.object_size
     total = sum(len(simulation_times(scene, r)) - 1 for r in recs)
     done = 0
-    for rec, emb in zip(recs, embs):
+    for i, (rec, emb) in enumerate(zip(recs, embs)):
+        state = states[i] if states is not None else robust_initial_state(scene, model, rec, emb, start)
         if np.isfinite(bound):
-            sim = _simulate_bounded(scene, model, rec, emb, bound, done, total)
+            sim = _simulate_bounded(scene, model, rec, emb, bound, done, total, state)
             done += len(sim[0]) - 1
         else:
-            sim = simulate_recording(scene, model, rec, state=robust_initial_state(scene, model, rec, emb))
+            sim = simulate_recording(scene, model, rec, state=state)
         P = interpolate_frames(sim[0], emb.apply(sim[1]), rec.times)
         seen = rec.seen
         out.append(100.0 * np.linalg.norm(P - rec.markers, axis=2)[seen] / size)
@@ -304,6 +318,9 @@ class Learner:
         self.lam: float | None = self.opt.lam if self.opt.lam is not None else (None if self.tracking else 1.0)
         self.lam_info: dict = {"source": "option" if self.opt.lam is not None else "marker default"}
         self._evaluated = None  # (params, train errors, sims, test errors) known for the next iteration
+        # start_pose "released": the train recordings' initial states, estimated once per iteration
+        # with the current model and shared by its candidates' checks (None: per model, held)
+        self._train_states = None
         self._basis_sims = None  # after a rejected update: the candidate's simulations for the basis
 
     # ------------------------------------------------------------------ checkpoints
@@ -439,7 +456,8 @@ class Learner:
         that did (a lower bound of the max, > bound) with errors and sims None."""
         try:
             model = self.scene.model(params.correction() if params is not None else None)
-            errs, sims = _errors(self.scene, model, self.train, self.emb_train, bound)
+            errs, sims = _errors(self.scene, model, self.train, self.emb_train, bound, self.opt.start_pose,
+                                 self._train_states)
             return max(e.max() for e in errs), errs, sims
         except ErrorBoundExceeded as stop:
             self.log(f"  forward check stopped after {100 * stop.simulated:.0f} % of the steps: error "
@@ -464,14 +482,19 @@ class Learner:
         while True:
             t0 = time.time()
             model = self.scene.model(params.correction() if params is not None else None)
-            if self._evaluated is not None and self._evaluated[0] is params:
+            known = self._evaluated is not None and self._evaluated[0] is params
+            if known and opt.start_pose == "held":
                 tr_err, sims, te_err = self._evaluated[1:]
-            else:  # the nominal model, or a resumed run's last accepted update
-                tr_err, sims = _errors(self.scene, model, self.train, self.emb_train)
-                te_err = None
+            else:  # the nominal model, a resumed run's last accepted update, or new start states
+                if opt.start_pose != "held":
+                    self._train_states = [robust_initial_state(self.scene, model, rec, emb, opt.start_pose)
+                                          for rec, emb in zip(self.train, self.emb_train)]
+                tr_err, sims = _errors(self.scene, model, self.train, self.emb_train, start=opt.start_pose,
+                                       states=self._train_states)
+                te_err = self._evaluated[3] if known else None
             if te_err is None:
                 try:
-                    te_err, _ = _errors(self.scene, model, self.test, self.emb_test)
+                    te_err, _ = _errors(self.scene, model, self.test, self.emb_test, start=SCORE_START)
                 except RuntimeError as err:  # scored only; never a decision input
                     te_err = []
                     self.log(f"iteration {k}: a test recording cannot be simulated ({err})")

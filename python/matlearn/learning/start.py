@@ -1,6 +1,9 @@
 """Where the learning starts: the scene's nominal model, or parameters fitted first.
 
-"baseline" start: E, nu and alpha_K of the nominal law are fitted to the train recordings
+"baseline" start: E, nu and alpha_K of the nominal law (or, with `laws`, of each listed law,
+the lowest train rms kept: bench/learning_table.py passes the co-rotated and the neo-Hookean law,
+so a recording that a neo-Hookean law explains better starts the learner from that law and its
+correction is learned on top of it) are fitted to the train recordings
 (baseline.fit_parameters, the Wang-2015-style identification, with alpha_M held at the
 nominal value) and replace the nominal ones. A change of E and nu of the co-rotated law is
 exactly a linear correction in the principal stretches and a change of alpha_K is a constant
@@ -73,12 +76,26 @@ def with_parameters(scene, material: Material, damping: Damping):
     return dataclasses.replace(scene, material=material, damping=damping)
 
 
-def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluations: int = 20, log=None):
+def _warm_for(warm, law: str):
+    """The warm start for `law`: warm is None, one fit_parameters result (used for its own law)
+    or a dict law -> result."""
+    if warm is None:
+        return None
+    if "material" in warm:
+        return warm if warm["material"].model == law else None
+    return warm.get(law)
+
+
+def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluations: int = 20, log=None,
+                   laws: tuple | None = None):
     """(scene with fitted E, nu, alpha_K as nominal, start info dict) (module docstring).
 
-    The fit (the scene's own law, alpha_M held at the nominal value) is read from
-    RUN/start.json when a previous run of this scene wrote it; warm: a baseline.fit_parameters
-    result to start the fit from (e.g. the 4-parameter baseline)."""
+    The fit (alpha_M held at the nominal value) is read from RUN/start.json when a previous run
+    of this scene wrote it; warm: a baseline.fit_parameters result (or a dict law -> result) to
+    start the fit from (e.g. the 4-parameter baseline); laws: the laws fitted (default: the
+    scene's own law, co-rotated if it is neither co-rotated nor neo-Hookean); with several, the
+    fit with the lowest train rms is the start, so the learner starts from the law that explains
+    the recordings best (its correction is then learned on top of that law)."""
     cache = Path(run_dir) / START_JSON if run_dir is not None else None
     fit = None
     if cache is not None and cache.exists():
@@ -88,34 +105,41 @@ def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluation
                    "damping": damping_from_dict(doc["damping"]),
                    "evaluations": doc.get("evaluations"), "train_rms_pct": doc.get("train_rms_pct")}
     if fit is None:
-        law = scene.material.model if scene.material.model in ("corotated", "neo_hookean") else "corotated"
-        fit = fit_parameters(scene, law, max_evaluations=max_evaluations,
-                             alpha_mass=float(scene.damping.alpha_mass), start=warm)
+        own = scene.material.model if scene.material.model in ("corotated", "neo_hookean") else "corotated"
+        fits = {law: fit_parameters(scene, law, max_evaluations=max_evaluations,
+                                    alpha_mass=float(scene.damping.alpha_mass), start=_warm_for(warm, law))
+                for law in (laws or (own,))}
+        if len(fits) > 1:
+            fit = fits[min(fits, key=lambda k: fits[k]["train_rms_pct"])]
+            fit["train_rms_pct_by_law"] = {k: f["train_rms_pct"] for k, f in fits.items()}
+        else:
+            fit = next(iter(fits.values()))
     info = {"start": "baseline", "material": spec_dict(fit["material"]),
             "damping": spec_dict(fit["damping"]), "evaluations": fit.get("evaluations"),
-            "train_rms_pct": fit.get("train_rms_pct")}
+            "train_rms_pct": fit.get("train_rms_pct"), "train_rms_pct_by_law": fit.get("train_rms_pct_by_law")}
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
         cache.write_text(json.dumps(info, indent=1))
     if log:
-        log(f"learning starts from the baseline fit: E={np.mean(fit['material'].youngs_modulus):.4g} Pa "
+        log(f"learning starts from the baseline fit: {fit['material'].model} E={np.mean(fit['material'].youngs_modulus):.4g} Pa "
             f"nu={np.mean(fit['material'].poisson_ratio):.3f} alpha_M={fit['damping'].alpha_mass:.3g} "
             f"alpha_K={fit['damping'].alpha_stiffness:.3g}")
     return with_parameters(scene, fit["material"], fit["damping"]), info
 
 
 def start_scene(scene, start: str, run_dir=None, warm: dict | None = None, max_evaluations: int = 20,
-                log=None):
-    """The scene the loop learns on for `start` ("nominal" or "baseline") and the start info."""
+                log=None, laws: tuple | None = None):
+    """The scene the loop learns on for `start` ("nominal" or "baseline"; laws: those the
+    baseline start fits, :func:`baseline_start`) and the start info."""
     if start not in STARTS:
         raise ValueError(f"start must be one of {STARTS}, got {start!r}")
     if start == "nominal":
         return scene, {"start": "nominal"}
-    return baseline_start(scene, run_dir, warm=warm, max_evaluations=max_evaluations, log=log)
+    return baseline_start(scene, run_dir, warm=warm, max_evaluations=max_evaluations, log=log, laws=laws)
 
 
 def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max_evaluations: int = 20,
-                     resume: bool = False, log=None, learn_fn=None):
+                     resume: bool = False, log=None, learn_fn=None, laws: tuple | None = None):
     """Learn from both starts and keep the one with the lower learned *train* max error (module
     docstring). Each start runs in RUN/start_<name> (resumable on its own). Returns (the scene
     learned on, start info, learn result, run folder of the kept start); the info has
@@ -130,7 +154,7 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
         sub = run_dir / f"start_{name}"
         if log:
             log(f"start '{name}' (best-of-both mode, {sub})")
-        sc, info = start_scene(scene, name, sub, warm=warm, max_evaluations=max_evaluations, log=log)
+        sc, info = start_scene(scene, name, sub, warm=warm, max_evaluations=max_evaluations, log=log, laws=laws)
         res = learn_fn(sc, sub, options, resume=resume, log=log)
         runs[name] = (sc, info, res, sub)
     train = {n: float(r[2]["final"]["train"]["max_error_pct"]) for n, r in runs.items()}
@@ -159,14 +183,14 @@ def chosen_run(run_dir) -> Path:
 
 
 def learn_from(scene, start: str, run_dir, options=None, warm: dict | None = None, max_evaluations: int = 20,
-               resume: bool = False, log=None):
+               resume: bool = False, log=None, laws: tuple | None = None):
     """Learn from the start `start` (one of MODES: "nominal", "baseline", or "best" for both,
-    :func:`learn_best_start`). Returns (the scene learned on, start info, learn result, run folder
+    :func:`learn_best_start`; laws: those the baseline start fits). Returns (the scene learned on, start info, learn result, run folder
     of the kept model)."""
     if start == "best":
         return learn_best_start(scene, run_dir, options, warm=warm, max_evaluations=max_evaluations,
-                                resume=resume, log=log)
+                                resume=resume, log=log, laws=laws)
     from .loop import learn
 
-    sc, info = start_scene(scene, start, run_dir, warm=warm, max_evaluations=max_evaluations, log=log)
+    sc, info = start_scene(scene, start, run_dir, warm=warm, max_evaluations=max_evaluations, log=log, laws=laws)
     return sc, info, learn(sc, run_dir, options, resume=resume, log=log), Path(run_dir)

@@ -1,0 +1,211 @@
+"""The released start: the initial pose of a recording that starts from a held, deformed pose,
+estimated from its markers better than the held pose of :mod:`replay` does.
+
+The held pose (replay._held_pose) prescribes the vertices nearest the frame-0 markers: the body
+is held by point forces at the markers. A real body is held elsewhere (a hand, a load, a
+support), so with sparse markers the held pose is kinked at the markers and wrong between and
+beyond them, and the released motion starts wrong. The released start replaces it in three
+steps, using only the recording and the model:
+
+1. *Smooth holds*: static equilibria under smooth hold forces f = M Phi c, Phi the r lowest
+   vibration modes (mass-normalised) of the model at the held pose on the free, undriven DOFs,
+   with c fitted to the frame-0 markers by Gauss-Newton (line search) with a minimum-energy
+   regulariser (c = Lambda^(1/2) z, |z|^2 = twice the energy of the modes' linear response); one
+   candidate per r in MODE_COUNTS. Few modes give a smooth pose that may miss markers, many modes
+   approach the held pose.
+2. *Choice by the release*: every candidate, and the held pose itself, is released (zero
+   velocity) and simulated over the first frames of the recording, those at times
+   <= t0 + T1 / WINDOW_DIVISOR (T1: the lowest period of the model at the held pose; at least
+   MIN_WINDOW_FRAMES frames); the candidate with the lowest marker rms over them is kept.
+3. *Window refinement*: one Gauss-Newton step x0 += Phi_w dc over the REFINE_MODES lowest modes
+   on the marker misfit over the same frames (Jacobian by finite differences of released
+   simulations), kept only if it lowers that misfit.
+
+Only the start's frames (step 2-3) inform the start; the scoring still compares every frame.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sl
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+
+MODE_COUNTS = (6, 12, 24, 48)
+REFINE_MODES = 12
+WINDOW_DIVISOR = 8.0
+MIN_WINDOW_FRAMES = 3
+_DENSE_EIG_DOFS = 1500  # dense eigensolver below this many free DOFs, shift-invert Lanczos above
+
+
+def _free_dofs(scene, rec) -> tuple[np.ndarray, np.ndarray]:
+    """(driven vertices (D,), free undriven DOFs (3m,)) of the recording on the scene."""
+    from .replay import drive_vertices
+
+    didx, _ = drive_vertices(scene, rec)
+    n = scene.mesh.num_vertices
+    keep = np.setdiff1d(np.arange(n), np.union1d(np.asarray(scene.fixed), didx))
+    return didx, (3 * keep[:, None] + np.arange(3)).ravel()
+
+
+def vibration_modes(model, x: np.ndarray, dofs: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+    """The r lowest eigenpairs (lam (r,), Phi (len(dofs), r)) of K Phi = M Phi diag(lam) at
+    positions x (n, 3), K the PSD-projected stiffness restricted to `dofs` (the others held),
+    Phi^T M Phi = I."""
+    n = len(x)
+    K = model.stiffness(x, np.zeros((n, 3)), project_psd=True).tocsr()[dofs][:, dofs]
+    m = np.repeat(np.asarray(model.vertex_mass, float), 3)[dofs]
+    r = int(min(r, len(dofs)))
+    if r < 1:
+        raise ValueError("vibration_modes: no free DOF")
+    if len(dofs) <= _DENSE_EIG_DOFS:
+        lam, Phi = sl.eigh(K.toarray(), np.diag(m), subset_by_index=[0, r - 1])
+    else:
+        shift = -1e-6 * float(K.diagonal().mean() / m.mean())
+        lam, Phi = sla.eigsh(K.tocsc(), k=r, M=sp.diags(m).tocsc(), sigma=shift, which="LM")
+        order = np.argsort(lam)
+        lam, Phi = lam[order], Phi[:, order]
+    return np.maximum(lam, 1e-12 * max(lam.max(), 1e-300)), Phi
+
+
+def window_frames(scene, rec, lowest_eigenvalue: float) -> int:
+    """Number of recording frames in the release window: times <= t0 + T1 / WINDOW_DIVISOR,
+    T1 = 2 pi / sqrt(lowest_eigenvalue), at least MIN_WINDOW_FRAMES (or all frames)."""
+    t1 = 2.0 * np.pi / np.sqrt(lowest_eigenvalue)
+    k = int(np.searchsorted(rec.times, rec.times[0] + t1 / WINDOW_DIVISOR, side="right"))
+    return int(min(rec.num_frames, max(MIN_WINDOW_FRAMES, k)))
+
+
+class _Window:
+    """Released simulations of one recording over its first `frames` frames."""
+
+    def __init__(self, scene, model, rec, emb, frames: int):
+        from .replay import simulation_times
+
+        self.scene, self.model, self.rec, self.emb = scene, model, rec, emb
+        self.frames = frames
+        self.steps = int(np.ceil((rec.times[frames - 1] - rec.times[0]) / scene.time_step - 1e-9))
+        self.steps = max(1, min(self.steps, len(simulation_times(scene, rec)) - 1))
+        self.seen = rec.seen[:frames]
+        self.obs = rec.markers[:frames][self.seen]
+
+    def residual(self, x0: np.ndarray) -> np.ndarray:
+        """Marker misfit (predicted - observed) over the window's seen samples, flattened."""
+        from .replay import interpolate_frames, simulate_recording
+
+        n = len(x0)
+        sim_t, X, _ = simulate_recording(self.scene, self.model, self.rec, state=(x0, np.zeros((n, 3))),
+                                         steps=self.steps)
+        P = interpolate_frames(sim_t, self.emb.apply(X), self.rec.times[:self.frames])
+        return (P[self.seen] - self.obs).ravel()
+
+    def rms(self, x0: np.ndarray) -> float:
+        try:
+            d = self.residual(x0)
+        except RuntimeError:
+            return np.inf
+        return float(np.sqrt(np.mean(d**2))) if np.all(np.isfinite(d)) else np.inf
+
+
+def smooth_hold(scene, model, rec, emb, x_held: np.ndarray, lam: np.ndarray, Phi: np.ndarray,
+                dofs: np.ndarray, integ, iterations: int = 6, frame: int = 0) -> np.ndarray:
+    """Static equilibrium under hold forces M Phi c fitted to the markers of `frame` (step 1 of
+    the module docstring), started from the held pose's reactions projected onto the modes.
+    `integ` has the scene's clamp and the drive vertices prescribed at `x_held`'s positions.
+    Raises RuntimeError when a static solve fails."""
+    n = len(x_held)
+    seen = rec.seen[frame]
+    C = sp.kron(emb.matrix(n)[seen], sp.eye(3)).tocsr()[:, dofs]
+    obs = rec.markers[frame, seen].ravel()
+    mass = np.repeat(np.asarray(model.vertex_mass, float), 3)
+    g = np.tile(np.asarray(scene.gravity, float), n)
+    react = -(np.asarray(model.forces(x_held, np.zeros((n, 3))), float).ravel() + mass * g)
+    c = Phi.T @ react[dofs]
+    MPhi = mass[dofs][:, None] * Phi
+    sq = np.sqrt(lam)
+
+    def solve(c, x_from):
+        f = np.zeros(3 * n)
+        f[dofs] = MPhi @ c
+        integ.set_state(x_from, np.zeros((n, 3)))
+        integ.static_solve(f.reshape(n, 3), load_steps=1)
+        x = np.array(integ.x)
+        return x, obs - C @ x.ravel()[dofs]
+
+    x, res = solve(c, x_held)
+    for _ in range(iterations):
+        K = model.stiffness(x, np.zeros((n, 3)), project_psd=True).tocsr()[dofs][:, dofs].tocsc()
+        Jz = C @ sla.splu(K).solve(MPhi * sq[None])  # d markers / dz, c = sqrt(lam) z
+        z = c / sq
+        A = Jz.T @ Jz
+        rho = 1e-6 * np.trace(A) / len(z)
+        dz = np.linalg.solve(A + rho * np.eye(len(z)), Jz.T @ res - rho * z)
+        for t in (1.0, 0.5, 0.25):
+            try:
+                xt, rt = solve(c + t * sq * dz, x)
+            except RuntimeError:
+                continue
+            if rt @ rt < res @ res:
+                break
+        else:
+            break
+        gain = 1.0 - np.sqrt((rt @ rt) / max(res @ res, 1e-300))
+        c, x, res = c + t * sq * dz, xt, rt
+        if gain < 1e-2:
+            break
+    return x
+
+
+def refine_in_window(window: _Window, x0: np.ndarray, Phi: np.ndarray, dofs: np.ndarray,
+                     size: float) -> np.ndarray:
+    """One Gauss-Newton step x0 + Phi dc on the window misfit (finite-difference Jacobian), kept
+    only if it lowers the misfit (step 3 of the module docstring)."""
+    n = len(x0)
+    r0 = window.residual(x0)
+    J = np.empty((len(r0), Phi.shape[1]))
+    for j in range(Phi.shape[1]):
+        eps = 1e-4 * size / max(np.abs(Phi[:, j]).max(), 1e-300)
+        xj = x0.copy().ravel()
+        xj[dofs] += eps * Phi[:, j]
+        J[:, j] = (window.residual(xj.reshape(n, 3)) - r0) / eps
+    A = J.T @ J
+    dc = -np.linalg.solve(A + 1e-8 * np.trace(A) / len(A) * np.eye(len(A)), J.T @ r0)
+    x1 = x0.copy().ravel()
+    x1[dofs] += Phi @ dc
+    x1 = x1.reshape(n, 3)
+    return x1 if window.rms(x1) < np.sqrt(np.mean(r0**2)) else x0
+
+
+def released_start(scene, model, rec, emb, x_held: np.ndarray, integ=None,
+                   mode_counts=MODE_COUNTS, refine_modes: int = REFINE_MODES) -> np.ndarray:
+    """The released start x0 (n, 3) of `rec` (velocity zero) from its held pose `x_held`; see the
+    module docstring. `integ`: an integrator of the scene with `model` (made if None)."""
+    from .replay import drive_vertices
+
+    x_held = np.asarray(x_held, float)
+    didx, dofs = _free_dofs(scene, rec)
+    if len(dofs) == 0:
+        return x_held.copy()
+    rmax = int(min(max(max(mode_counts, default=0), refine_modes), len(dofs)))
+    lam, Phi = vibration_modes(model, x_held, dofs, rmax)
+    window = _Window(scene, model, rec, emb, window_frames(scene, rec, lam[0]))
+    integ = scene.integrator(model) if integ is None else integ
+    integ.set_prescribed(didx if len(didx) else np.zeros(0, np.int64))
+    best, best_rms = x_held, window.rms(x_held)
+    for r in sorted({int(min(r, len(dofs))) for r in mode_counts}):
+        try:
+            x = smooth_hold(scene, model, rec, emb, x_held, lam[:r], Phi[:, :r], dofs, integ)
+        except RuntimeError:
+            continue
+        e = window.rms(x)
+        if e < best_rms:
+            best, best_rms = x, e
+    integ.set_prescribed(np.zeros(0, np.int64))
+    if refine_modes > 0 and np.isfinite(best_rms):
+        try:
+            best = refine_in_window(window, best, Phi[:, :refine_modes], dofs, scene.object_size)
+        except RuntimeError:
+            pass
+    if len(didx):
+        best = best.copy()
+        best[didx] = drive_vertices(scene, rec)[1][0]
+    return best
