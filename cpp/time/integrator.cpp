@@ -219,6 +219,7 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
   const int nv = x_.rows();
   if (f_ext.rows() != nv) throw InvalidInput("f_ext must have shape (#V, 3)");
   if (load_steps < 1) throw InvalidInput("load_steps must be >= 1");
+  if (max_iterations < 1) throw InvalidInput("max_iterations must be >= 1");
   if (fixed_.size() == 0 && prescribed_.size() == 0)
     throw InvalidInput("static_solve needs fixed vertices (a free body has no equilibrium)");
   const VecX& mass = model_->dof_mass();
@@ -229,8 +230,10 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
   fem::ElementState st;
   const VecX empty;
   double fint_norm = 0.0;
-  auto residual = [&](const MatX3& x, double scale, VecX& r) {
-    model_->evaluate(x, zero_v, fem::kForce | fem::kStiffness, true, st);
+  // Residual f_int(x) + scale f_load on the free DOFs; with `tangent` also the element
+  // stiffnesses (the forces are bitwise the same either way, see Correction::evaluate_values).
+  auto residual = [&](const MatX3& x, double scale, bool tangent, VecX& r) {
+    model_->evaluate(x, zero_v, fem::kForce | (tangent ? fem::kStiffness : 0), true, st);
     const VecX f = model_->gather_forces(st);
     r.resize(n_free_);
     fint_norm = 0.0;
@@ -241,14 +244,53 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
       }
     fint_norm = std::sqrt(fint_norm);
   };
+  auto moved = [&](double t, const VecX& dx) {
+    MatX3 xt = x_;
+    auto xd = as_dofs(xt);
+    for (int d = 0; d < 3 * nv; ++d)
+      if (dof_map_[d] >= 0) xd[d] += t * dx[dof_map_[d]];
+    return xt;
+  };
   const double ref = fload.norm() + 1e-12;
+  const double dx_floor = 1e-14 * size_ * std::sqrt(double(n_free_));
+  static_timings_ = StepTimings{};
+  bool factored = false;  // solver_ holds a tangent of this solve (chord steps may reuse it)
   for (int ls = 1; ls <= load_steps; ++ls) {
     const double scale = double(ls) / load_steps;
     VecX r;
-    residual(x_, scale, r);
-    int it = 0, uphill = 0;
-    for (; it < max_iterations; ++it) {
-      if (r.norm() <= tol * ref) break;
+    residual(x_, scale, false, r);
+    int fresh = 0, uphill = 0;
+    // Chord (lagged-tangent) steps: a force evaluation and a triangular solve with the last
+    // factorised tangent, taken while they contract the residual about as well as the last
+    // fresh tangent did. That tangent is PSD-projected and, with a learned correction, only the
+    // symmetric part of dN/dFh, so Newton itself converges only linearly there (measured
+    // contraction ~0.6 per iteration on the learned 6k-tet bar): re-evaluating and
+    // refactorising it every iteration bought nothing.
+    bool chord = factored;
+    double q_fresh = 0.0;  // residual contraction of the last fresh-tangent iteration
+    for (int it = 0; it < 4 * max_iterations; ++it) {
+      const double r0 = r.norm();
+      if (r0 <= tol * ref) break;
+      if (chord) {
+        const VecX dx = solver_.solve(r);
+        const MatX3 xt = moved(1.0, dx);
+        VecX rt;
+        residual(xt, scale, false, rt);
+        const double q = rt.allFinite() ? rt.norm() / r0 : 2.0;
+        ++static_timings_.iterations;
+        if (q < 1.0) {
+          x_ = xt;
+          r = rt;
+          if (dx.norm() <= dx_floor) break;
+          // Far from equilibrium a backtracked fresh step may contract by ~1; chord steps
+          // must still contract clearly (<= 0.75) or the tangent is refreshed.
+          chord = q <= std::max(kChordContraction, std::min(0.75, 1.25 * q_fresh));
+          continue;
+        }
+        // Not a decrease: discard the step, take a fresh tangent at the same point.
+      }
+      if (fresh >= max_iterations) break;
+      residual(x_, scale, true, r);
       assembler_->assemble(st.K, 1.0, {}, 0.0, empty, 0.0, A_);
       try {
         solver_.factorize(A_);
@@ -256,18 +298,20 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
         throw NumericalError(std::string("static_solve: ") + err.what() +
                              " (is the body clamped enough to be stable?)");
       }
+      factored = true;
+      ++fresh;
+      ++static_timings_.iterations;
+      ++static_timings_.factorizations;
       const VecX dx = solver_.solve(r);
-      // Backtracking on the residual norm keeps Newton safe far from equilibrium.
-      double t = 1.0, r0 = r.norm();
+      // Backtracking on the residual norm keeps Newton safe far from equilibrium (trials need
+      // forces only).
+      double t = 1.0;
       bool decreased = false;
       MatX3 xt;
       VecX rt;
       for (int bt = 0; bt < 12; ++bt) {
-        xt = x_;
-        auto xd = as_dofs(xt);
-        for (int d = 0; d < 3 * nv; ++d)
-          if (dof_map_[d] >= 0) xd[d] += t * dx[dof_map_[d]];
-        residual(xt, scale, rt);
+        xt = moved(t, dx);
+        residual(xt, scale, false, rt);
         if (rt.allFinite() && rt.norm() < r0) {
           decreased = true;
           break;
@@ -278,23 +322,20 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
         // At the round-off floor (set by the internal forces, which can exceed a small load by
         // orders of magnitude) nothing decreases any more: stop, the check below judges it.
         if (r0 <= 1e-10 * (fint_norm + ref)) {
-          residual(x_, scale, r);
+          residual(x_, scale, false, r);
           break;
         }
         // Otherwise the PSD-projected tangent is not the exact one (large rotations, compressed
         // fibres) and the residual norm may have to rise before it falls: take a short
         // non-monotone step, a bounded number of times.
         if (++uphill > 8) {
-          residual(x_, scale, r);
+          residual(x_, scale, false, r);
           break;
         }
-        xt = x_;
-        auto xd = as_dofs(xt);
-        for (int d = 0; d < 3 * nv; ++d)
-          if (dof_map_[d] >= 0) xd[d] += 0.25 * dx[dof_map_[d]];
-        residual(xt, scale, rt);
+        xt = moved(0.25, dx);
+        residual(xt, scale, false, rt);
         if (!rt.allFinite()) {
-          residual(x_, scale, r);
+          residual(x_, scale, false, r);
           break;
         }
         t = 0.25;
@@ -302,7 +343,9 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
       x_ = xt;
       r = rt;
       // A negligible update is convergence too (the residual tolerance may be below round-off).
-      if (t * dx.norm() <= 1e-14 * size_ * std::sqrt(double(n_free_))) break;
+      if (t * dx.norm() <= dx_floor) break;
+      q_fresh = r.norm() / r0;
+      chord = decreased;
     }
     if (!r.allFinite() || r.norm() > 1e-3 * ref)
       throw NumericalError("static_solve: Newton did not converge at load step " +

@@ -78,10 +78,17 @@ class Integrator {
   MatX3 simulate_constrained(const MatX3& targets, const MatX3& f_ext, const ProgressFn& progress = {},
                              MatX3* velocities = nullptr);
 
-  /// Static equilibrium under f_ext + gravity from the current x, in load_steps increments.
-  /// Sets x to the solution and v to zero.
+  /// Static equilibrium under f_ext + gravity from the current x, in load_steps increments:
+  /// Newton on the PSD-projected tangent with backtracking, plus chord steps that reuse the
+  /// last factorised tangent while they contract the residual by kChordContraction (or about as
+  /// well as the last fresh tangent did, up to 0.75). Stops when |residual| <= tolerance |f_ext + gravity| (free
+  /// DOFs); at most max_iterations tangent factorisations and 4 max_iterations steps per load
+  /// step. Sets x to the solution and v to zero.
   void static_solve(const MatX3& f_ext, int load_steps = 1, int max_iterations = 50,
                     double tolerance = 1e-9);
+  /// Iterations (chord and fresh) and tangent factorisations of the last static_solve.
+  const StepTimings& last_static_timings() const { return static_timings_; }
+  static constexpr double kChordContraction = 0.25;
 
  private:
   void rebuild_pattern();
@@ -94,7 +101,7 @@ class Integrator {
   MatX3 prev_v_;  // velocity before the last step (for the extrapolated initial guess)
   bool has_prev_v_ = false;
   int steps_ = 0, last_iters_ = 0;
-  StepTimings timings_;
+  StepTimings timings_, static_timings_;
   VecXi dof_map_;  // global dof -> free index or -1
   int n_free_ = 0;
   std::unique_ptr<fem::SparseAssembler> assembler_;

@@ -60,6 +60,16 @@ void define_time(py::module_& m) {
             return d;
           },
           "Wall-clock seconds per phase of the last step, summed over its Newton iterations.")
+      .def_property_readonly(
+          "last_static_iterations",
+          [](const Integrator& I) {
+            const auto& t = I.last_static_timings();
+            py::dict d;
+            d["iterations"] = t.iterations;
+            d["factorizations"] = t.factorizations;
+            return d;
+          },
+          "Steps (chord and fresh-tangent) and tangent factorisations of the last static_solve.")
       .def_property_readonly("fixed", &Integrator::fixed)
       .def_property_readonly("prescribed", &Integrator::prescribed)
       .def("set_state",
