@@ -39,41 +39,44 @@ inline void givens(double a, double b, double& c, double& sn) {
 
 void rotation_variant_svd(const Mat3& F, Mat3& U, Vec3& s, Mat3& V) {
   // 1. Symmetric eigen-decomposition of F^T F by cyclic Jacobi rotations: V (proper rotation).
-  Mat3 A = F.transpose() * F;
+  //    Only the 6 distinct entries of the symmetric matrix are updated (a rotation in the
+  //    (p, q) plane zeroes a_pq, moves a_pp, a_qq by -/+ t a_pq and mixes the third row r).
+  const Mat3 A = F.transpose() * F;
+  double d[3] = {A(0, 0), A(1, 1), A(2, 2)};
+  double o[3] = {A(0, 1), A(0, 2), A(1, 2)};  // off-diagonal (0,1), (0,2), (1,2)
   V.setIdentity();
-  const double scale = A.diagonal().sum();
+  const double scale = d[0] + d[1] + d[2];
   if (!(scale > 0) || !std::isfinite(scale)) return jacobi_svd(F, U, s, V);
+  // pair k = (p, q) with the other index r; o_pr and o_qr are the off-diagonals it mixes
+  static const int P[3] = {0, 0, 1}, Q[3] = {1, 2, 2};
+  static const int OPR[3] = {1, 0, 0}, OQR[3] = {2, 2, 1};
   for (int sweep = 0; sweep < 12; ++sweep) {
-    const double off = A(0, 1) * A(0, 1) + A(0, 2) * A(0, 2) + A(1, 2) * A(1, 2);
-    if (off <= 1e-34 * scale * scale) break;
-    static const int pq[3][2] = {{0, 1}, {0, 2}, {1, 2}};
-    for (const auto& idx : pq) {
-      const int p = idx[0], q = idx[1];
-      const double apq = A(p, q);
+    if (o[0] * o[0] + o[1] * o[1] + o[2] * o[2] <= 1e-34 * scale * scale) break;
+    for (int k = 0; k < 3; ++k) {
+      const double apq = o[k];
       if (std::abs(apq) <= 1e-300) continue;
-      const double theta = (A(q, q) - A(p, p)) / (2.0 * apq);
-      const double t = (theta >= 0 ? 1.0 : -1.0) / (std::abs(theta) + std::sqrt(theta * theta + 1.0));
+      const int p = P[k], q = Q[k];
+      // t = sign(theta) / (|theta| + sqrt(theta^2 + 1)), theta = (a_qq - a_pp) / (2 a_pq),
+      // written without the division for theta (sign(+-0) = +1 as before).
+      const double diff = d[q] - d[p];
+      const double sgn = diff == 0.0 || (diff > 0) == (apq > 0) ? 1.0 : -1.0;
+      const double t = sgn * 2.0 * std::abs(apq) / (std::abs(diff) + std::sqrt(diff * diff + 4.0 * apq * apq));
       const double c = 1.0 / std::sqrt(t * t + 1.0), sn = t * c;
-      // A <- J^T A J, V <- V J with J the rotation in the (p, q) plane.
-      for (int k = 0; k < 3; ++k) {
-        const double akp = A(k, p), akq = A(k, q);
-        A(k, p) = c * akp - sn * akq;
-        A(k, q) = sn * akp + c * akq;
-      }
-      for (int k = 0; k < 3; ++k) {
-        const double apk = A(p, k), aqk = A(q, k);
-        A(p, k) = c * apk - sn * aqk;
-        A(q, k) = sn * apk + c * aqk;
-      }
-      for (int k = 0; k < 3; ++k) {
-        const double vkp = V(k, p), vkq = V(k, q);
-        V(k, p) = c * vkp - sn * vkq;
-        V(k, q) = sn * vkp + c * vkq;
+      d[p] -= t * apq;
+      d[q] += t * apq;
+      o[k] = 0.0;
+      const double arp = o[OPR[k]], arq = o[OQR[k]];
+      o[OPR[k]] = c * arp - sn * arq;
+      o[OQR[k]] = sn * arp + c * arq;
+      for (int i = 0; i < 3; ++i) {
+        const double vip = V(i, p), viq = V(i, q);
+        V(i, p) = c * vip - sn * viq;
+        V(i, q) = sn * vip + c * viq;
       }
     }
   }
   // 2. Order by decreasing eigenvalue (swapping two columns and negating one keeps det V = +1).
-  Vec3 lam = A.diagonal();
+  Vec3 lam(d[0], d[1], d[2]);
   auto swap_cols = [&](int i, int j) {
     std::swap(lam[i], lam[j]);
     V.col(i).swap(V.col(j));
