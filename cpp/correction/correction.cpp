@@ -123,7 +123,8 @@ inline double elu(double z, double* slope) {
 
 /// Fast path of MlpCorrection::evaluate for the distillation architecture 6 -> H -> H -> 3|4
 /// with fixed-size Eigen types; NC = 3 propagates only the Fh Jacobian (a net whose first-layer
-/// Fhdot columns are zero), NC = 6 both. Same arithmetic as the generic loop.
+/// Fhdot columns are zero), NC = 6 both, NC = 0 none (values only: the same value arithmetic,
+/// so bitwise the values of NC = 3 or 6). Same arithmetic as the generic loop.
 template <int H, int NC>
 void mlp_fixed(const std::vector<DenseLayer>& L, const VecX& in_mean, const VecX& in_std,
                const VecX& out_mean, const VecX& out_std, const MatX3& Fh, const MatX3& Fhdot,
@@ -131,8 +132,10 @@ void mlp_fixed(const std::vector<DenseLayer>& L, const VecX& in_mean, const VecX
   using VH = Eigen::Matrix<double, H, 1>;
   const int m = Fh.rows(), no = L[2].W.rows();
   const Eigen::Matrix<double, H, 6> W0 = L[0].W;
-  const Eigen::Matrix<double, H, NC> W0J = W0.template leftCols<NC>() *
-                                           in_std.head<NC>().cwiseInverse().asDiagonal();
+  constexpr int NJ = NC > 0 ? NC : 1;  // Jacobian columns carried (unused when NC = 0)
+  Eigen::Matrix<double, H, NJ> W0J = Eigen::Matrix<double, H, NJ>::Zero();
+  if constexpr (NC > 0)
+    W0J = W0.template leftCols<NC>() * in_std.head<NC>().cwiseInverse().asDiagonal();
   const Eigen::Matrix<double, H, H> W1 = L[1].W;
   Eigen::Matrix<double, 4, H> W2 = Eigen::Matrix<double, 4, H>::Zero();
   W2.topRows(no) = L[2].W;
@@ -149,24 +152,27 @@ void mlp_fixed(const std::vector<DenseLayer>& L, const VecX& in_mean, const VecX
     a << Fh.row(e).transpose(), Fhdot.row(e).transpose();
     a = (a - im).cwiseProduct(is);
     VH z = W0 * a + b0;
-    Eigen::Matrix<double, H, NC> J = W0J;
+    Eigen::Matrix<double, H, NJ> J = W0J;
     for (int i = 0; i < H; ++i) {
       double d;
       z[i] = elu(z[i], &d);
-      J.row(i) *= d;
+      if constexpr (NC > 0) J.row(i) *= d;
     }
     VH z1 = W1 * z + b1;
-    Eigen::Matrix<double, H, NC> J1 = W1 * J;
+    Eigen::Matrix<double, H, NJ> J1;
+    if constexpr (NC > 0) J1.noalias() = W1 * J;
     for (int i = 0; i < H; ++i) {
       double d;
       z1[i] = elu(z1[i], &d);
-      J1.row(i) *= d;
+      if constexpr (NC > 0) J1.row(i) *= d;
     }
     const Eigen::Vector4d y = (W2 * z1 + b2).cwiseProduct(os) + om;
-    const Eigen::Matrix<double, 3, NC> Jy = os.head<3>().asDiagonal() * (W2.template topRows<3>() * J1);
     out.dPh.row(e) = y.head<3>().transpose();
-    out.d_dFh[e] = Jy.template leftCols<3>();
-    if constexpr (NC == 6) out.d_dFhdot[e] = Jy.template rightCols<3>();
+    if constexpr (NC > 0) {
+      const Eigen::Matrix<double, 3, NC> Jy = os.head<3>().asDiagonal() * (W2.template topRows<3>() * J1);
+      out.d_dFh[e] = Jy.template leftCols<3>();
+      if constexpr (NC == 6) out.d_dFhdot[e] = Jy.template rightCols<3>();
+    }
     if (no == 4) out.dalpha[e] = y[3];
   }
 }
@@ -174,20 +180,36 @@ void mlp_fixed(const std::vector<DenseLayer>& L, const VecX& in_mean, const VecX
 }  // namespace
 
 void MlpCorrection::evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const {
+  run(Fh, Fhdot, true, out);
+}
+
+void MlpCorrection::evaluate_values(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const {
+  run(Fh, Fhdot, false, out);
+}
+
+void MlpCorrection::run(const MatX3& Fh, const MatX3& Fhdot, bool jacobians, CorrectionOutput& out) const {
   const int m = Fh.rows();
-  resize_output(m, out);
+  if (jacobians) {
+    resize_output(m, out);
+  } else {
+    out.dPh.setZero(m, 3);
+    out.d_dFh.clear();
+    out.d_dFhdot.clear();
+    out.dalpha.setZero(m);
+  }
   if (layers_.size() == 3 && layers_[0].W.rows() == layers_[1].W.rows()) {
     const int H = layers_[0].W.rows();
     const bool rate = !layers_[0].W.rightCols<3>().isZero(0.0);
-    const auto run = [&](auto h, auto nc) {
+    const auto fixed = [&](auto h, auto nc) {
       mlp_fixed<decltype(h)::value, decltype(nc)::value>(layers_, in_mean_, in_std_, out_mean_,
                                                          out_std_, Fh, Fhdot, out);
     };
+    using I0 = std::integral_constant<int, 0>;
     using I3 = std::integral_constant<int, 3>;
     using I6 = std::integral_constant<int, 6>;
     using I16 = std::integral_constant<int, 16>;
-    if (H == 6) return rate ? run(I6{}, I6{}) : run(I6{}, I3{});
-    if (H == 16) return rate ? run(I16{}, I6{}) : run(I16{}, I3{});
+    if (H == 6) return !jacobians ? fixed(I6{}, I0{}) : rate ? fixed(I6{}, I6{}) : fixed(I6{}, I3{});
+    if (H == 16) return !jacobians ? fixed(I16{}, I0{}) : rate ? fixed(I16{}, I6{}) : fixed(I16{}, I3{});
   }
   // Fixed-capacity temporaries (no heap allocation per element): layers are at most kMaxWidth wide.
   using SmallV = Eigen::Matrix<double, Eigen::Dynamic, 1, 0, kMaxWidth, 1>;
@@ -197,25 +219,29 @@ void MlpCorrection::evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutp
     SmallV a(6);
     a << Fh.row(e).transpose(), Fhdot.row(e).transpose();
     a = (a - in_mean_).cwiseQuotient(in_std_);
-    SmallM Ja = in_std_.cwiseInverse().asDiagonal();  // d a / d input (6 x 6)
+    SmallM Ja;  // d a / d input (6 x 6)
+    if (jacobians) Ja = in_std_.cwiseInverse().asDiagonal();
     for (size_t l = 0; l < layers_.size(); ++l) {
       SmallV z = layers_[l].W * a + layers_[l].b;
-      SmallM Jz = layers_[l].W * Ja;
+      SmallM Jz;
+      if (jacobians) Jz = layers_[l].W * Ja;
       if (l + 1 < layers_.size()) {
         for (int i = 0; i < z.size(); ++i) {
           double d;
           z[i] = elu(z[i], &d);
-          Jz.row(i) *= d;
+          if (jacobians) Jz.row(i) *= d;
         }
       }
       a = z;
-      Ja = Jz;
+      if (jacobians) Ja = Jz;
     }
     const SmallV y = a.cwiseProduct(out_std_) + out_mean_;
-    const Eigen::Matrix<double, 3, 6> Jy = out_std_.head<3>().asDiagonal() * Ja.topRows<3>();
     out.dPh.row(e) = y.head<3>().transpose();
-    out.d_dFh[e] = Jy.leftCols<3>();
-    out.d_dFhdot[e] = Jy.rightCols<3>();
+    if (jacobians) {
+      const Eigen::Matrix<double, 3, 6> Jy = out_std_.head<3>().asDiagonal() * Ja.topRows<3>();
+      out.d_dFh[e] = Jy.leftCols<3>();
+      out.d_dFhdot[e] = Jy.rightCols<3>();
+    }
     // The Model uses dalpha's value only (its stretch derivative is left out of the tangent, as
     // for RbfCorrection).
     if (outputs_ == 4) out.dalpha[e] = y[3];

@@ -93,8 +93,11 @@ class MlpCorrection final : public Correction {
   MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX in_std, VecX out_mean,
                 VecX out_std);
   void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
+  /// No input Jacobians (the forward pass alone): bitwise the values of evaluate().
+  void evaluate_values(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
 
  private:
+  void run(const MatX3& Fh, const MatX3& Fhdot, bool jacobians, CorrectionOutput& out) const;
   std::vector<DenseLayer> layers_;
   VecX in_mean_, in_std_, out_mean_, out_std_;
   int outputs_;  ///< 3 (dPh) or 4 (dPh, dalpha)
