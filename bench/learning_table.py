@@ -176,8 +176,14 @@ def main():
         "bounding-box diagonal; the last test recording of each case has a larger deformation than "
         "training. Baseline: E, nu, alpha_M, alpha_K of the co-rotated and of the neo-Hookean law fitted "
         "by least squares on the same train recordings, the law with the lower train rms kept (row "
-        "`baseline_law`, both in `baseline_by_law`). `truth_replay_max_error_pct_test`: the TRUE material "
-        "replayed through the same scoring (initial pose estimated from the markers), the floor of "
+        "`baseline_law`, both in `baseline_by_law`). Every model (nominal, baseline, learned, true) is "
+        "scored on the test recordings from the same estimated initial state, the released start "
+        f"(replay.SCORE_START = {SCORE_START!r}, release.py: smooth hold forces fitted to the frame-0 "
+        "markers, chosen and refined on the frames up to 1/8 of the model's lowest period after the "
+        "release; recordings at rest start at rest); the learner's TRAIN recordings start from "
+        f"the held pose (row `train_start_pose` = {args.start_pose!r}). "
+        "`truth_replay_max_error_pct_test`: the TRUE material "
+        "replayed through the same scoring, the floor of "
         "every model (null for the coarsened layered bars). Learner: LearnOptions defaults (24 RBF centres, fit with a tangent penalty "
         "on the RBF part, weight 0.001/0.01/0.1/1 relative to the nominal modulus, each once free and once "
         "with the linear part and the RBF part's slope at the edge of the data penalised (weights 1 / 10, "
@@ -185,7 +191,9 @@ def main():
         f"error, monotone loop) with at most {args.iterations} iterations, started (--start "
         f"{args.start}) from " + ("the nominal parameters" if args.start == "nominal" else
         ("both the nominal parameters and " if args.start == "best" else "") +
-        f"E, nu, alpha_K fitted to the train recordings with alpha_M held at the nominal value "
+        f"E, nu, alpha_K of the co-rotated and of the neo-Hookean law fitted to the train recordings "
+        "with alpha_M held at the nominal value, the law with the lower train rms kept (the learner "
+        "then corrects that law; row `start_parameters` with `train_rms_pct_by_law`) "
         f"(learning/start.py; at most {args.start_evals} evaluations warm-started from the baseline; "
         "row `start_parameters`; iteration 0 is that fit, so `learned_train_max_error_pct` <= "
         "`start_train_max_error_pct`; wall_s includes this start fit, not the baseline's)" +

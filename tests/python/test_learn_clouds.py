@@ -97,12 +97,14 @@ def test_learn_tracks_clouds_chooses_lambda_and_cuts_held_out_error(scanned, tmp
 
 
 def score_params(scene, params, recs):
-    """Max held-out marker error (% of size) of a correction on recordings `recs`."""
+    """Max held-out marker error (% of size) of a correction on recordings `recs`, scored like the
+    loop's test errors (from replay.SCORE_START)."""
     from matlearn.embedding import embed_points
     from matlearn.learning.loop import _errors
+    from matlearn.replay import SCORE_START
 
     errs, _ = _errors(scene, scene.model(params.correction()), recs,
-                      [embed_points(scene.mesh, r.marker_rest) for r in recs])
+                      [embed_points(scene.mesh, r.marker_rest) for r in recs], start=SCORE_START)
     return max(float(e.max()) for e in errs)
 
 

@@ -9,7 +9,7 @@ from matlearn import cli
 from matlearn.learning import LearnOptions, learn, load_model
 from matlearn.embedding import embed_points
 from matlearn.learning.loop import code_fingerprint, robust_initial_state
-from matlearn.replay import predict_markers, simulate_recording, trajectory_error
+from matlearn.replay import SCORE_START, predict_markers, simulate_recording, trajectory_error
 from matlearn.scene import load_scene
 
 from learning_cases import small_bar_case
@@ -33,7 +33,7 @@ def test_learning_cuts_held_out_error_and_resume_is_identical(case, tmp_path):
     # The learned model, replayed outside the loop, scores the same.
     model = sc.model(full["params"].correction())
     rec = sc.recordings_with_role("test")[0]
-    state = robust_initial_state(sc, model, rec, embed_points(sc.mesh, rec.marker_rest))
+    state = robust_initial_state(sc, model, rec, embed_points(sc.mesh, rec.marker_rest), SCORE_START)
     pred = predict_markers(sc, model, rec, sim=simulate_recording(sc, model, rec, state=state))
     assert trajectory_error(pred, rec, sc.object_size)["max_error_pct"] == pytest.approx(learned, rel=1e-9)
     # Kill after the first iteration (simulated by a 1-iteration run), then resume to 2.
