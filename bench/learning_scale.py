@@ -23,7 +23,8 @@ exceeds the current train error). The stage times come from wrappers around the 
   initial_traj     marker-following constrained simulation (first iteration)
   pod, spacetime   basis; problem set-up + Gauss-Newton solve + control forces
   fit              normal equations (fit_system) + solves (solve_fit)
-The first forward simulation (nominal model) is the in-run reference for the ratios.
+The in-run reference for the ratios is the nominal model's forward simulation: the loop's first
+one and a repeat after the run, the faster of the two (a load burst during one of them skews it).
 
 Writes bench/results/learning_scale.json: {"tets", "vertices", "frames", "wall_s" (whole run),
 "stages": {stage: {"s", "calls"}}, "ratio_to_forward_sim", "iterations": [per-iteration train
@@ -190,12 +191,19 @@ def main(argv=None) -> int:
     shutil.rmtree(run, ignore_errors=True)
     code = commit()  # the code that runs (read before the run: the tree may change meanwhile)
     stages, first = {}, []
-    instrument(stages, first)
+    originals = instrument(stages, first)
     load0 = os.getloadavg()[0]
     t0 = time.time()
     res = learn(sc, run, opt, log=lambda *a: print(*a, flush=True))
     wall = time.time() - t0
     load1 = os.getloadavg()[0]
+    # The in-run reference is one forward simulation: a load burst on the shared machine during
+    # it skews every ratio (one run measured 97.8 s where 46 s is typical at that load). Repeat
+    # the nominal forward simulation once after the run and take the faster of the two.
+    from matlearn.embedding import embed_points
+    t = time.time()
+    originals["_errors"](sc, sc.model(), [rec], [embed_points(sc.mesh, rec.marker_rest)])
+    ref_runs = (first[:1] or [float("nan")]) + [time.time() - t]
     its = [{"iteration": m["iteration"], "train_max_error_pct": m["train"]["max_error_pct"],
             "train_rms_error_pct": m["train"]["rms_error_pct"], "update": m.get("update"),
             "update_step": (m.get("fit") or {}).get("update_step"), "wall_s": m.get("wall_s"),
@@ -206,13 +214,13 @@ def main(argv=None) -> int:
                        for c in (m.get("fit") or {}).get("ridge_candidates", [])
                        + (m.get("fit") or {}).get("steps_tried", [])[1:]],
             "stop": m.get("stop")} for m in res["metrics"]]
-    ref = first[0] if first else float("nan")
+    ref = min(ref_runs)
     doc = {"benchmark": "learning_scale", "tets": int(sc.mesh.num_tets), "vertices": int(sc.mesh.num_vertices),
            "recording_s": args.duration, "time_step_s": sc.time_step,
            "steps": int(round(args.duration / sc.time_step)), "recording_frames": int(rec.num_frames),
            "markers": int(rec.num_markers), "wall_s": wall, "target_s": TARGET_S, "met": bool(wall <= TARGET_S),
            "stages": stages, "other_s": wall - sum(s["s"] for s in stages.values()),
-           "forward_sim_reference_s": ref,
+           "forward_sim_reference_s": ref, "forward_sim_reference_runs_s": ref_runs,
            "ratio_to_forward_sim": {k: v["s"] / ref for k, v in stages.items()},
            "iterations_run": len([m for m in res["metrics"] if "fit" in m]),
            "best_iteration": res["best_iteration"],
@@ -236,6 +244,7 @@ def main(argv=None) -> int:
     print(f"{'stage':<15} {'wall s':>8} {'calls':>6} {'x fwd sim':>10}")
     for k, v in stages.items():
         print(f"{k:<15} {v['s']:8.1f} {v['calls']:6d} {v['s'] / ref:10.2f}")
+    print(f"reference forward simulation {ref:.1f} s (runs: {', '.join(f'{r:.1f}' for r in ref_runs)} s)")
     print(f"full run {wall:.1f} s (target {TARGET_S:.0f} s: {'met' if doc['met'] else 'NOT met'}), "
           f"{doc['iterations_run']} iterations, stop: {doc['stop']}; train max error "
           f"{doc['nominal_train_max_error_pct']:.3f} % -> {doc['final_train_max_error_pct']:.3f} %")
