@@ -9,7 +9,9 @@ released from there; a few refinement passes then shift each marker's vertex by 
 remaining misfit so that markers between vertices are matched too. The initial velocity is zero by default, the paper's setting (objects are
 released from a held, deformed pose); `velocity="estimate"` instead estimates it by finite
 differences of the equilibrium shapes matched to frames 0 and 1, for recordings that start
-mid-motion.
+mid-motion. `start="released"` (release.py) replaces the held pose by smooth hold forces fitted
+to frame 0, chosen and refined on the first frames after the release: the start every model is
+scored from (SCORE_START, :func:`score`).
 
 Drive points (recording extension keys `drive_rest`/`drive`) become prescribed vertices: the
 model vertices within half the drive points' spacing of some drive point (at least the nearest
