@@ -14,6 +14,12 @@ def _row(name, rss, n_eff=400.0, floor=1e-2, credit=None):
     return row
 
 
+def _nested(rows, loo, credit, tol, **kw):
+    """pipeline._resolve_nested on `rows` with the leave-one-recording-out rss `loo` (name ->
+    rss), no log."""
+    return pipeline._resolve_nested(rows, lambda name, fit: loo[name], credit, tol, lambda m: None, **kw)
+
+
 def test_a_tie_is_led_by_the_fit_that_is_best_once_charged_its_discretisation_credit():
     # two fits neither of which beats the other (named compression bar): near-equal credits
     # (6.0e-4, 6.5e-4) must not decide, the better fit once charged its credit leads
@@ -46,17 +52,14 @@ def test_a_nested_family_needs_a_leave_one_out_gain_beyond_the_noise():
     small = _row("rayleigh_damping", 4.22e-3, n_eff=340, floor=3.4e-3)
     assert ranking.beats(big, small, credit, tol)
     loo = {"strain_dependent_damping": 4.8560e-3, "rayleigh_damping": 4.8593e-3}
-    best, forced = pipeline._resolve_nested([big, small], lambda name, fit: loo[name], credit, tol,
-                                            lambda m: None)
+    best, forced = _nested([big, small], loo, credit, tol)
     assert best["name"] == "rayleigh_damping"
     assert forced["_ties"] == [("rayleigh_damping", "strain_dependent_damping")]
     # a clear leave-one-recording-out gain decides for the larger family
     loo["strain_dependent_damping"] = 4.0e-3
-    best, _ = pipeline._resolve_nested([big, small], lambda name, fit: loo[name], credit, tol,
-                                       lambda m: None)
+    best, _ = _nested([big, small], loo, credit, tol)
     assert best["name"] == "strain_dependent_damping"
     assert np.isfinite(best["score"])
-
 
 
 def test_a_located_region_replaces_the_uniform_scale_when_it_fits_better_than_its_credit():
@@ -68,13 +71,11 @@ def test_a_located_region_replaces_the_uniform_scale_when_it_fits_better_than_it
     big = _row("heterogeneity", 0.020, n_eff=450, floor=1.2e-2)
     small = _row("stiffness_scale", 0.123, n_eff=450, floor=1.2e-2)
     loo = {"heterogeneity": 0.024, "stiffness_scale": 0.132}
-    best, forced = pipeline._resolve_nested([small, big], lambda name, fit: loo[name], credit, tol,
-                                            lambda m: None)
+    best, forced = _nested([small, big], loo, credit, tol)
     assert best["name"] == "heterogeneity" and forced == {"heterogeneity": "stiffness_scale"}
     # a region whose gain its credit could explain is not
     credit["heterogeneity"] = 0.11
-    best, _ = pipeline._resolve_nested([small, big], lambda name, fit: loo[name], credit, tol,
-                                       lambda m: None)
+    best, _ = _nested([small, big], loo, credit, tol)
     assert best["name"] == "stiffness_scale"
 
 
@@ -87,18 +88,17 @@ def test_a_located_region_does_not_replace_a_uniform_scale_within_the_conservati
     big = _row("heterogeneity", 0.0147, n_eff=150, floor=2.2e-3)
     small = _row("stiffness_scale", 0.0225, n_eff=150, floor=2.2e-3)
     loo = {"heterogeneity": 0.0141, "stiffness_scale": 0.0231}
-    cv = lambda name, fit: loo[name]  # noqa: E731
-    best, forced = pipeline._resolve_nested([big, small], cv, credit, tol, lambda m: None, floor_wide=0.0258)
+    best, forced = _nested([big, small], loo, credit, tol, floor_wide=0.0258)
     assert best["name"] == "stiffness_scale"
     assert forced["_ties"] == [("stiffness_scale", "heterogeneity")]
-    best, _ = pipeline._resolve_nested([big, small], cv, credit, tol, lambda m: None, floor_wide=0.02)
+    best, _ = _nested([big, small], loo, credit, tol, floor_wide=0.02)
     assert best["name"] == "heterogeneity"
     # a family whose pattern the physics fixes is judged on its measured credit
     credit = {"strain_dependent_damping": 1.85e-4, "rayleigh_damping": 6.2e-5}
     big = _row("strain_dependent_damping", 4.7e-3, n_eff=420, floor=7.3e-3)
     small = _row("rayleigh_damping", 7.9e-3, n_eff=420, floor=7.3e-3)
     loo = {"strain_dependent_damping": 6.0e-3, "rayleigh_damping": 1.14e-2}
-    best, _ = pipeline._resolve_nested([big, small], cv, credit, tol, lambda m: None, floor_wide=4.5e-2)
+    best, _ = _nested([big, small], loo, credit, tol, floor_wide=4.5e-2)
     assert best["name"] == "strain_dependent_damping"
 
 
