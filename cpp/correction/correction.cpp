@@ -7,10 +7,16 @@ namespace matlearn::correction {
 
 constexpr int kMaxWidth = 32;  ///< widest MLP layer (fixed-capacity temporaries)
 
-static void resize_output(int m, CorrectionOutput& out) {
+/// Zeroed outputs for m elements; without `jacobians` (the values-only paths) no Jacobians.
+static void resize_output(int m, CorrectionOutput& out, bool jacobians = true) {
   out.dPh.setZero(m, 3);
-  out.d_dFh.assign(m, Mat3::Zero());
-  out.d_dFhdot.assign(m, Mat3::Zero());
+  if (jacobians) {
+    out.d_dFh.assign(m, Mat3::Zero());
+    out.d_dFhdot.assign(m, Mat3::Zero());
+  } else {
+    out.d_dFh.clear();
+    out.d_dFhdot.clear();
+  }
   out.dalpha.setZero(m);
 }
 
@@ -70,10 +76,7 @@ void RbfCorrection::evaluate(const MatX3& Fh, const MatX3&, CorrectionOutput& ou
 
 void RbfCorrection::evaluate_values(const MatX3& Fh, const MatX3&, CorrectionOutput& out) const {
   const int m = Fh.rows();
-  out.dPh.resize(m, 3);
-  out.d_dFh.clear();
-  out.d_dFhdot.clear();
-  out.dalpha.resize(m);
+  resize_output(m, out, false);
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < m; ++e) {
     Vec3 p;
@@ -189,14 +192,7 @@ void MlpCorrection::evaluate_values(const MatX3& Fh, const MatX3& Fhdot, Correct
 
 void MlpCorrection::run(const MatX3& Fh, const MatX3& Fhdot, bool jacobians, CorrectionOutput& out) const {
   const int m = Fh.rows();
-  if (jacobians) {
-    resize_output(m, out);
-  } else {
-    out.dPh.setZero(m, 3);
-    out.d_dFh.clear();
-    out.d_dFhdot.clear();
-    out.dalpha.setZero(m);
-  }
+  resize_output(m, out, jacobians);
   if (layers_.size() == 3 && layers_[0].W.rows() == layers_[1].W.rows()) {
     const int H = layers_[0].W.rows();
     const bool rate = !layers_[0].W.rightCols<3>().isZero(0.0);
