@@ -46,7 +46,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
     nominal = [r["max_error_pct"] for r in score(scene, scene.model(), "test")["recordings"]]
     tb = time.time()
     # the baseline: every law of BASELINE_LAWS fitted, the lower TRAIN rms kept (issue 3: co-rotated
-    # and neo-Hookean); the start fit is warm-started from the nominal law's fit
+    # and neo-Hookean); the start fit of each law is warm-started from that law's fit
     fits = {law: fit_parameters(scene, law, max_evaluations=baseline_evals) for law in BASELINE_LAWS}
     law = min(fits, key=lambda k: fits[k]["train_rms_pct"])
     fit = fits[law]
