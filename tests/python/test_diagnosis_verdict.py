@@ -5,13 +5,10 @@ import numpy as np
 from matlearn.diagnosis import fitting, pipeline, ranking
 
 
-def _row(name, rss, n_eff=400.0, floor=1e-2, credit=None):
+def _row(name, rss, n_eff=400.0, floor=1e-2):
     dof = pipeline._dof(name)
-    row = {"name": name, "rss": rss, "score": fitting.score(rss, dof, n_eff, floor), "_fit": object(),
-           "_criterion": (dof, n_eff, floor)}
-    if credit is not None:
-        row["credited"] = fitting.score(rss + ranking.CREDIT_FACTOR * credit.get(name, 0.0), dof, n_eff, floor)
-    return row
+    return {"name": name, "rss": rss, "score": fitting.score(rss, dof, n_eff, floor), "_fit": object(),
+            "_criterion": (dof, n_eff, floor)}
 
 
 def _nested(rows, loo, credit, tol, **kw):
@@ -25,7 +22,7 @@ def test_a_tie_is_led_by_the_fit_that_is_best_once_charged_its_discretisation_cr
     # (6.0e-4, 6.5e-4) must not decide, the better fit once charged its credit leads
     credit = {"rayleigh_damping": 6.0e-4, "compression_nonlinearity": 6.5e-4}
     tol = {n: 1e-5 for n in credit}
-    rows = [_row(n, r, n_eff=300, floor=4.3e-3, credit=credit) for n, r in
+    rows = [_row(n, r, n_eff=300, floor=4.3e-3) for n, r in
             (("rayleigh_damping", 4.58e-3), ("compression_nonlinearity", 4.40e-3))]
     assert not ranking.beats(rows[1], rows[0], credit, tol)
     ranking.confounded(rows, credit, tol, rss0=6.3e-3, rss_noise=3.3e-3)
@@ -35,7 +32,7 @@ def test_a_tie_is_led_by_the_fit_that_is_best_once_charged_its_discretisation_cr
     # a located region that fits better only by about what it could mimic (named support bar)
     # does not lead the clamp layer
     credit = {"support_compliance": 8e-4, "heterogeneity": 3.9e-2}
-    rows = [_row(n, r, n_eff=430, floor=8.8e-3, credit=credit) for n, r in
+    rows = [_row(n, r, n_eff=430, floor=8.8e-3) for n, r in
             (("heterogeneity", 0.065), ("support_compliance", 0.106))]
     out = ranking.order(rows, credit, {})
     assert out[0]["name"] == "support_compliance"

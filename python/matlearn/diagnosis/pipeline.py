@@ -408,11 +408,8 @@ def _rank(fits, cheap, order, n_eff, floor, rss0, credit, tol, rss_noise=0.0):
         rss = fit.rss if fit else cheap[name][1]
         rows.append({"name": name, "_fit": fit, "rss": rss,
                      "score": fitting.score(rss, _dof(name), n_eff, floor),
-                     # the criterion charged with what the fit could gain by mimicking the mesh
-                     # error, as uncertain as in ranking.beats: among fits the data cannot tell
-                     # apart, the best one by it leads
-                     "credited": fitting.score(rss + ranking.CREDIT_FACTOR * credit.get(name, 0.0),
-                                               _dof(name), n_eff, floor),
+                     # the criterion's parameters, for ranking.credited: among fits the data
+                     # cannot tell apart, the best one charged its credit leads
                      "_criterion": (_dof(name), n_eff, floor),
                      "explained": float(np.clip((rss0 - rss) / max(rss0, 1e-300), 0, 1))})
     ranking.confounded(rows, credit, tol, rss0, rss_noise=rss_noise)
@@ -433,7 +430,8 @@ def _add_nested_ties(rows, forced):
 def _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=None):
     """The best-ranked family, with a nested pair decided on evidence: the larger family (e.g.
     strain-dependent damping, which contains Rayleigh damping) is preferred only when both its
-    criterion charged with its discretisation credit is lower (`_charged`) and its
+    criterion charged with its discretisation credit is lower (ranking.credited at face
+    value) and its
     leave-one-recording-out residual is lower by more than the noise fluctuation (with one
     train recording, the criterion alone). When exactly one of the two prefers it, the data
     cannot tell them apart: the smaller one is reported, confounded with the larger. Returns
@@ -458,7 +456,7 @@ def _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=None):
     # is kept fixed here: re-locating it per fold from the other recording alone was tried and
     # is too poor with two train recordings, e.g. the named heterogeneity bar 0.31 vs 0.13.)
     gain = small["rss"] - big["rss"]
-    by_score = _charged(big, credit) < _charged(small, credit)
+    by_score = ranking.credited(big, credit, 1.0) < ranking.credited(small, credit, 1.0)
     # A family that picks its place from the data (a located region: FAMILIES extra_dof) has a
     # credit measured on the refined-mesh discrepancy's pattern only; the truth's own mesh error,
     # in another pattern, it can follow just as well. Where the smaller family leaves no more
@@ -528,11 +526,6 @@ def _support_or_region(ranked, ctx, say):
             f"{t_h[0]:.2f}/{t_h[1]:.2f}: {lead['name']} leads")
     return out
 
-
-def _charged(row, credit):
-    """The criterion of a fit charged its discretisation credit at face value (rss + credit)."""
-    rss = row["rss"] + credit.get(row["name"], 0.0)
-    return fitting.score(rss, *row["_criterion"]) if "_criterion" in row else rss
 
 
 def _forward_select(P, ctx, selected, ranked, verdict, n_eff, floor, rss0, say, max_effects=3):

@@ -139,11 +139,11 @@ def confounded(rows: list, credit: dict, tol: dict, rss0: float, forced: dict | 
                 a["confounded_with"].append(b["name"])
 
 
-def credited(row: dict, credit: dict) -> float:
+def credited(row: dict, credit: dict, factor: float = CREDIT_FACTOR) -> float:
     """Evidence of a fit once it is charged what it could have gained by mimicking the mesh's
-    discretisation error: row["credited"] (the information criterion of rss + CREDIT_FACTOR x
-    credit, set by the caller, who knows the sample size and floor) or else that rss. Lower
-    leads."""
-    if "credited" in row:
-        return float(row["credited"])
-    return float(row["rss"] + CREDIT_FACTOR * credit.get(row["name"], 0.0))
+    discretisation error, `factor` x its credit (CREDIT_FACTOR, as uncertain as in `beats`,
+    between fits the data cannot tell apart; 1, at face value, within a nested pair): the
+    information criterion (fitting.score) of rss + factor x credit when the row carries its
+    criterion's `_criterion` = (dof, n_eff, floor), else that rss. Lower leads."""
+    rss = row["rss"] + factor * credit.get(row["name"], 0.0)
+    return fitting.score(rss, *row["_criterion"]) if "_criterion" in row else float(rss)
