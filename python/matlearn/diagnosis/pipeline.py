@@ -18,14 +18,13 @@ Steps (method.md section 9):
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from . import fitting, history, ranking, region, where
+from . import contract, fitting, history, ranking, region, where
 from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContext, describe
 from .problem import Problem
 
@@ -300,7 +299,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     say(f"verdict {verdict}")
 
     # ---- how much: held-out gaps
-    gap_before = fitting.gap(P, nominal)
+    gap_before = _safe_gap(P, None, None, model=nominal)  # None: the nominal model fails there
     cumulative = {}
     for i, name in enumerate(v for v in verdict if v in FAMILIES):
         params = {n: selected.params[n] for n in verdict[: i + 1] + [NUISANCE]
@@ -332,7 +331,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         after = _safe_gap(P, ctx, hist["reference"]) if hist["parameters"] else None
         effects.append({"name": "history_dependence", "explained": hist["explained"],
                         "score": hist["score"], "parameters": hist["parameters"],
-                        "gap_after": after or (stateless[-1] if stateless else dict(gap_before)),
+                        "gap_after": after or (stateless[-1] if stateless else (gap_before and dict(gap_before))),
                         "outside_library": True})
     for name in fitting.mark_held_out_changes(effects, verdict, gap_before):
         say(f"adding {name} grows the held-out gap: the train recordings do not determine it there")
@@ -357,8 +356,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         "simulations": P.simulations,
         "residual_source": got[0][1],
     }
-    with open(out / "diagnosis.json", "w") as f:
-        json.dump(result, f, indent=1)
+    contract.write(result, out / "diagnosis.json")  # formats.md: gaps always objects, strict JSON
     if report:
         from . import report as rep
 
@@ -367,11 +365,11 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     return result
 
 
-def _safe_gap(P, ctx, params, fast=False):
-    """Held-out gap with the effects `params` added; None when the fitted model cannot be
-    simulated on the held-out motion (reported, not hidden)."""
+def _safe_gap(P, ctx, params, fast=False, model=None):
+    """Held-out gap with the effects `params` added (or of `model`); None when the model cannot
+    be simulated on the held-out motion (reported, not hidden: contract.conform)."""
     try:
-        return fitting.gap(P, fitting.build_model(ctx, params), fast=fast)
+        return fitting.gap(P, model if model is not None else fitting.build_model(ctx, params), fast=fast)
     except RuntimeError:
         return None
 
