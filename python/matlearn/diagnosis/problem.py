@@ -4,12 +4,14 @@ any model (the objective every effect family is fitted against), plus the honest
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 
 import numpy as np
 
 from .. import replay
 from ..embedding import embed_points
 from ..materials import Damping, Material
+from ..recording import Recording, load_recording
 from ..scene import Scene, load_scene
 
 
@@ -26,8 +28,8 @@ class Problem:
 
     def __init__(self, scene: Scene | str, fast_newton: int = 1, reuse_factor: bool = True):
         self.scene = load_scene(scene) if not isinstance(scene, Scene) else scene
-        self.train = [r for r in self.scene.recordings_with_role("train") if r.num_markers > 0]
-        self.test = [r for r in self.scene.recordings_with_role("test") if r.num_markers > 0]
+        self.train = self._recordings("train")
+        self.test = self._recordings("test")
         if not self.train:
             raise ValueError("diagnosis needs at least one 'train' recording with markers")
         self.fast_newton = fast_newton
@@ -46,6 +48,17 @@ class Problem:
     @property
     def mesh(self):
         return self.scene.mesh
+
+    def _recordings(self, role: str) -> list:
+        """The scene's recordings of `role` that have markers, each checked and made usable
+        (`usable_recording`); a recording that cannot be used raises a ValueError naming it."""
+        out = []
+        for path in self.scene.recording_paths(role):
+            rec = load_recording(path)
+            if rec.num_markers == 0:  # clouds only: not used by the marker-based diagnosis
+                continue
+            out.append(usable_recording(rec, self.scene, f"{role} recording {Path(path).name}"))
+        return out
 
     def embedding(self, rec):
         key = id(rec)
@@ -166,6 +179,47 @@ class Problem:
         fixed_new = np.concatenate([fixed_old, fixed_old[edges].all(axis=1)])
         return Scene(mesh, mat, Damping(**vars(s.damping)), np.flatnonzero(fixed_new), s.time_step,
                      s.gravity, list(s.recordings), s.path)
+
+
+# a marker farther than this fraction of the object size from the model's mesh is not a
+# surface marker of this body (another unit, another object, a misplaced rest position)
+MARKER_DISTANCE_MAX = 0.1
+
+
+def usable_recording(rec: Recording, scene: Scene, label: str) -> Recording:
+    """`rec` checked for what the diagnosis needs, with clear errors naming `label`:
+    * every marker's rest position lies on or near the model's mesh (within
+      MARKER_DISTANCE_MAX of the object size: markers in other units than the scene's are
+      caught here instead of as a failed static solve);
+    * frames before the first one in which any marker is seen are dropped when the recording
+      does not say it starts at rest and has no drive points: its initial state is unknown
+      and is estimated from the markers anyway (formats.md), so it starts where they are
+      first seen;
+    * at least 2 frames with seen markers remain (a motion to compare against)."""
+    from ..embedding import embed_points
+
+    emb = embed_points(scene.mesh, rec.marker_rest)
+    size = scene.object_size
+    far = np.asarray(emb.distance, float)
+    if far.size and far.max() > MARKER_DISTANCE_MAX * size:
+        k = int(np.argmax(far))
+        raise ValueError(
+            f"{label}: marker {k}'s rest position {np.round(rec.marker_rest[k], 6).tolist()} lies "
+            f"{far[k]:.4g} m from the model's mesh (object size {size:.4g} m); marker_rest must be "
+            f"on or near the body's surface, in the scene's units (m)")
+    seen = rec.seen.any(axis=1)
+    if not seen.any():
+        raise ValueError(f"{label}: no marker is seen in any frame")
+    first = int(np.argmax(seen))
+    if first > 0 and not rec.at_rest_initially and not rec.has_drive:
+        rec = Recording(times=rec.times[first:], marker_rest=rec.marker_rest,
+                        markers=rec.markers[first:])
+        seen = seen[first:]
+    if int(seen.sum()) < 2:
+        raise ValueError(
+            f"{label}: {int(seen.sum())} frame(s) with a seen marker; the diagnosis compares "
+            f"motions and needs at least 2")
+    return rec
 
 
 def _edges(T: np.ndarray) -> np.ndarray:
