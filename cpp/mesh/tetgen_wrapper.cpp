@@ -2,10 +2,38 @@
 
 #include <tetgen.h>
 
-#include <sstream>
+#include <charconv>
+#include <cmath>
+#include <string>
 #include <vector>
 
 namespace matlearn::mesh {
+
+namespace {
+// printf's "%.6g" (what an iostream writes by default, so meshes stay as they were), but independent
+// of any locale: std::to_chars never uses one, while an iostream takes the global C++ locale, whose
+// decimal comma turned "q1.5" into "q1,5", which TetGen reads as q1 and then meshes without end.
+void append_number(std::string& s, double x) {
+  char buf[64];
+  auto r = std::to_chars(buf, buf + sizeof buf, x, std::chars_format::general, 6);
+  s.append(buf, r.ptr);
+}
+}  // namespace
+
+std::string tetgen_switches(double max_volume, double min_ratio) {
+  if (!std::isfinite(max_volume) || !std::isfinite(min_ratio))
+    throw InvalidInput("tetrahedralize: max_volume and min_ratio must be finite");
+  std::string s = "pzQ";  // PLC, zero-based, quiet
+  if (min_ratio > 0) {
+    s += 'q';
+    append_number(s, min_ratio);
+  }
+  if (max_volume > 0) {
+    s += 'a';
+    append_number(s, max_volume);
+  }
+  return s;
+}
 
 void tetrahedralize(const MatX3& V, const MatX3i& F, double max_volume, double min_ratio,
                     MatX3& out_V, MatX4i& out_T) {
@@ -32,11 +60,7 @@ void tetrahedralize(const MatX3& V, const MatX3i& F, double max_volume, double m
     fc.polygonlist[0].vertexlist = new int[3];
     for (int k = 0; k < 3; ++k) fc.polygonlist[0].vertexlist[k] = F(f, k);
   }
-  std::ostringstream sw;
-  sw << "pzQ";  // PLC, zero-based, quiet
-  if (min_ratio > 0) sw << "q" << min_ratio;
-  if (max_volume > 0) sw << "a" << max_volume;
-  std::string switches = sw.str();
+  const std::string switches = tetgen_switches(max_volume, min_ratio);
   std::vector<char> buf(switches.begin(), switches.end());
   buf.push_back('\0');
   try {
