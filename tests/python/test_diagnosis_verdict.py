@@ -99,6 +99,33 @@ def test_a_located_region_does_not_replace_a_uniform_scale_within_the_conservati
     assert best["name"] == "strain_dependent_damping"
 
 
+def test_a_leading_poisson_ratio_with_its_offset_is_nested_over_the_uniform_scale():
+    # named density sphere (density 1.5x: exactly a stiffness scale 1/1.5): the Poisson ratio with
+    # its discretisation offset fits 1.4e-4 better than the scale, beyond its credit and the noise,
+    # so it leads the ranking; its offset is a stiffness scale, so against the scale it counts as
+    # a parameter, and the criterion (BIC, n_eff 302) then prefers the scale
+    rss_noise = 5.48e-3
+    credit = {"poisson_ratio": 4.54e-6, "stiffness_scale": 3.4e-10}
+    tol = {n: ranking.noise_tolerance(rss_noise, 100000, pipeline._dof(n)) for n in credit}
+    poisson = _row("poisson_ratio", 6.123e-3, n_eff=302, floor=5.568e-3)
+    scale = _row("stiffness_scale", 6.262e-3, n_eff=302, floor=5.568e-3)
+    assert ranking.beats(poisson, scale, credit, tol)  # the ranking alone: Poisson leads
+    loo = {"poisson_ratio": 6.12e-3, "stiffness_scale": 1.55e-2}
+    best, forced = _nested([poisson, scale], loo, credit, tol)
+    assert best["name"] == "stiffness_scale"
+    assert forced["_ties"] == [("stiffness_scale", "poisson_ratio")]
+    # a Poisson ratio far better than the scale (by much more than one parameter's price) keeps
+    # the lead, and a scale that leads is never replaced by the comparison
+    poisson = _row("poisson_ratio", 1.07e-2, n_eff=322, floor=7.5e-3)
+    scale = _row("stiffness_scale", 2.63e-2, n_eff=322, floor=7.5e-3)
+    credit["poisson_ratio"] = 3.3e-3
+    loo = {"poisson_ratio": 1.2e-2, "stiffness_scale": 2.7e-2}
+    best, forced = _nested([poisson, scale], loo, credit, tol)
+    assert best["name"] == "poisson_ratio" and forced == {"poisson_ratio": "stiffness_scale"}
+    best, forced = _nested([scale, poisson], loo, credit, tol)
+    assert best["name"] == "stiffness_scale" and forced == {}
+
+
 class _Fit:
     def __init__(self, params):
         self.params = params

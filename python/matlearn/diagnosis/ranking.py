@@ -93,18 +93,24 @@ def beats(a: dict, b: dict, credit: dict, tol: dict) -> bool:
                 and a["score"] < b["score"])
 
 
+def forced_over(forced: dict, a: str, b: str) -> bool:
+    """Whether `forced` ({winner: loser or [losers]}) records "a beats b"."""
+    v = forced.get(a)
+    return v == b if isinstance(v, str) else (v is not None and b in v)
+
+
 def order(rows: list, credit: dict, tol: dict, forced: dict | None = None) -> list:
     """Rows (dicts with name, rss, score, _fit, optionally credited) in evidence order; simulated
     fits first (their rss is measured), then the linearised ones by score. forced: {winner:
-    loser} decisions taken elsewhere (nested pairs), applied as "winner beats loser"."""
+    loser or [losers]} decisions taken elsewhere (nested pairs), applied as "winner beats loser"."""
     forced = forced or {}
     sim = [r for r in rows if r["_fit"] is not None]
     rest = sorted((r for r in rows if r["_fit"] is None), key=lambda r: (r["score"], _prior(r["name"])))
 
     def wins(a, b):
-        if forced.get(a["name"]) == b["name"]:
+        if forced_over(forced, a["name"], b["name"]):
             return True
-        if forced.get(b["name"]) == a["name"]:
+        if forced_over(forced, b["name"], a["name"]):
             return False
         return beats(a, b, credit, tol)
 
@@ -131,7 +137,7 @@ def confounded(rows: list, credit: dict, tol: dict, rss0: float, forced: dict | 
         r["confounded_with"] = []
     for a in sim:
         for b in sim:
-            if a is b or forced.get(a["name"]) == b["name"] or forced.get(b["name"]) == a["name"]:
+            if a is b or forced_over(forced, a["name"], b["name"]) or forced_over(forced, b["name"], a["name"]):
                 continue
             half = rss_noise + 0.5 * max(rss0 - rss_noise, 0.0)
             explains = min(rss0 - a["rss"], rss0 - b["rss"]) > 0 and max(a["rss"], b["rss"]) < half
