@@ -126,28 +126,35 @@ def truth_replay_errors(spec, path: Path, scene) -> list | None:
     return [r["max_error_pct"] for r in score(scene, model, "test")["recordings"]]
 
 
-def homogenised_truth_errors(spec, scene, samples: int = 512, seed: int = 0) -> list | None:
-    """Max error per test recording of the truth homogenised onto the model mesh (coarsened
-    cases only, else None): each model tet gets the truth's law, nu, density and damping and the
-    log-average (geometric mean) of the truth's Young's modulus over `samples` seeded points in
-    it. A per-element stiffness the learned correction (a function of principal stretches
-    only, the same in every element) cannot represent; a reference, not a floor (an isotropic
-    element can match neither the along- nor the across-layer modulus of a laminate)."""
-    from matlearn.embedding import embed_points
-    from matlearn.materials import Material
-
-    kw = spec.kwargs
-    fine, coarse, mat = kw["truth_mesh"], scene.mesh, kw["truth_material"]
-    if fine is kw["model_mesh"] or kw.get("truth_correction") is not None:
-        return None
-    E = np.broadcast_to(np.asarray(mat.youngs_modulus, float), (fine.num_tets,))
+def homogenised_modulus(fine, E, coarse, samples: int = 512, seed: int = 0) -> np.ndarray:
+    """Per-tet Young's modulus (m_coarse,) of `coarse`: the log-average (geometric mean) of the
+    per-tet modulus E of `fine` (same body, finer mesh) over `samples` seeded points in each
+    coarse tet (uniform in barycentric coordinates, each located in its fine tet)."""
+    E = np.broadcast_to(np.asarray(E, float), (fine.num_tets,))
     Vc, Tc = np.asarray(coarse.vertices), np.asarray(coarse.tets)
     w = np.random.default_rng(seed).dirichlet(np.ones(4), size=samples)
     P = np.einsum("sk,tkd->tsd", w, Vc[Tc]).reshape(-1, 3)
-    logE = np.log(E[embed_points(fine, P).tet]).reshape(len(Tc), samples).mean(axis=1)
-    hom = Material(mat.model, np.exp(logE), float(np.mean(mat.poisson_ratio)), float(np.mean(mat.density)),
-                   mat.edits)
-    model = make_model(coarse, hom, kw["truth_damping"])
+    from matlearn.embedding import embed_points
+
+    return np.exp(np.log(E[embed_points(fine, P).tet]).reshape(len(Tc), samples).mean(axis=1))
+
+
+def homogenised_truth_errors(spec, scene, samples: int = 512, seed: int = 0) -> list | None:
+    """Max error per test recording of the truth homogenised onto the model mesh (coarsened
+    cases only, else None): each model tet gets the truth's law, nu, density and damping and
+    :func:`homogenised_modulus` of the truth's E. A per-element stiffness the learned correction
+    (a function of principal stretches only, the same in every element) cannot represent; a
+    reference, not a floor (an isotropic element can match neither the along- nor the
+    across-layer modulus of a laminate)."""
+    from matlearn.materials import Material
+
+    kw = spec.kwargs
+    mat = kw["truth_material"]
+    if kw["truth_mesh"] is kw["model_mesh"] or kw.get("truth_correction") is not None:
+        return None
+    E = homogenised_modulus(kw["truth_mesh"], mat.youngs_modulus, scene.mesh, samples, seed)
+    hom = Material(mat.model, E, float(np.mean(mat.poisson_ratio)), float(np.mean(mat.density)), mat.edits)
+    model = make_model(scene.mesh, hom, kw["truth_damping"])
     return [r["max_error_pct"] for r in score(scene, model, "test")["recordings"]]
 
 
