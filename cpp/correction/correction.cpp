@@ -86,9 +86,9 @@ void RbfCorrection::evaluate_values(const MatX3& Fh, const MatX3&, CorrectionOut
 }
 
 MlpCorrection::MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX in_std,
-                             VecX out_mean, VecX out_std)
+                             VecX out_mean, VecX out_std, double isotropic_width)
     : layers_(std::move(layers)), in_mean_(std::move(in_mean)), in_std_(std::move(in_std)),
-      out_mean_(std::move(out_mean)), out_std_(std::move(out_std)) {
+      out_mean_(std::move(out_mean)), out_std_(std::move(out_std)), width_(isotropic_width) {
   if (layers_.empty()) throw InvalidInput("MlpCorrection: no layers");
   int width = 6;
   for (size_t l = 0; l < layers_.size(); ++l) {
@@ -110,6 +110,53 @@ MlpCorrection::MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX 
   for (const auto& L : layers_)
     if (!L.W.allFinite() || !L.b.allFinite())
       throw InvalidInput("MlpCorrection: weights contain NaN or Inf");
+  if (!std::isfinite(width_)) throw InvalidInput("MlpCorrection: isotropic_width must be finite");
+  if (width_ < 0) width_ = 0.1 * in_std_.head<3>().mean();
+}
+
+bool isotropic_blend(const Vec3& s, double w, Vec3& p, Mat3* J, Mat3* Jdot) {
+  static const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+  constexpr double kCap = 1e8;
+  double k[3], dk[3], sg[3];
+  bool any = false;
+  for (int q = 0; q < 3; ++q) {
+    const double diff = s[pairs[q][0]] - s[pairs[q][1]], d = std::abs(diff);
+    sg[q] = diff < 0 ? -1.0 : 1.0;
+    k[q] = dk[q] = 0.0;
+    if (!(d < w)) continue;
+    any = true;
+    const double r = d > 0 ? (w / d) * (w / d) - 1.0 : 0.0;
+    if (d == 0 || r * r >= kCap) {
+      k[q] = kCap;  // (the dropped derivative term is ~ p-gap * d^3 / w^4: negligible here)
+    } else {
+      k[q] = r * r;
+      dk[q] = -4.0 * r * w * w / (d * d * d);
+    }
+  }
+  if (!any) return false;
+  Mat3 A = Mat3::Identity();
+  Vec3 l[3];
+  for (int q = 0; q < 3; ++q) {
+    l[q] = Vec3::Zero();
+    l[q][pairs[q][0]] = 1.0;
+    l[q][pairs[q][1]] = -1.0;
+    A += k[q] * l[q] * l[q].transpose();
+  }
+  const Mat3 S = A.inverse();  // symmetric positive definite, eigenvalues in [1, 1 + 3 kCap]
+  // S keeps constants (L 1 = 0), so only the deviation from the mean changes; the projector Z
+  // onto zero-mean vectors removes what round-off in S (condition up to ~3e8) leaks into the mean.
+  const Mat3 Z = Mat3::Identity() - Mat3::Constant(1.0 / 3.0);
+  const Mat3 M = Mat3::Constant(1.0 / 3.0);
+  const double mean = p.mean();
+  p = Vec3::Constant(mean) + Z * (S * (p - Vec3::Constant(mean)));
+  if (J) {
+    Mat3 Jn = S * *J;
+    for (int q = 0; q < 3; ++q)
+      if (dk[q] != 0.0) Jn -= (dk[q] * sg[q] * l[q].dot(p)) * (S * l[q]) * l[q].transpose();
+    *J = M * *J + Z * Jn;
+  }
+  if (Jdot) *Jdot = M * *Jdot + Z * (S * *Jdot);
+  return true;
 }
 
 namespace {
@@ -130,8 +177,8 @@ inline double elu(double z, double* slope) {
 /// so bitwise the values of NC = 3 or 6). Same arithmetic as the generic loop.
 template <int H, int NC>
 void mlp_fixed(const std::vector<DenseLayer>& L, const VecX& in_mean, const VecX& in_std,
-               const VecX& out_mean, const VecX& out_std, const MatX3& Fh, const MatX3& Fhdot,
-               CorrectionOutput& out) {
+               const VecX& out_mean, const VecX& out_std, double width, const MatX3& Fh,
+               const MatX3& Fhdot, CorrectionOutput& out) {
   using VH = Eigen::Matrix<double, H, 1>;
   const int m = Fh.rows(), no = L[2].W.rows();
   const Eigen::Matrix<double, H, 6> W0 = L[0].W;
@@ -170,12 +217,18 @@ void mlp_fixed(const std::vector<DenseLayer>& L, const VecX& in_mean, const VecX
       if constexpr (NC > 0) J1.row(i) *= d;
     }
     const Eigen::Vector4d y = (W2 * z1 + b2).cwiseProduct(os) + om;
-    out.dPh.row(e) = y.head<3>().transpose();
+    Vec3 p = y.head<3>();
     if constexpr (NC > 0) {
       const Eigen::Matrix<double, 3, NC> Jy = os.head<3>().asDiagonal() * (W2.template topRows<3>() * J1);
-      out.d_dFh[e] = Jy.template leftCols<3>();
-      if constexpr (NC == 6) out.d_dFhdot[e] = Jy.template rightCols<3>();
+      Mat3 Js = Jy.template leftCols<3>(), Jd = Mat3::Zero();
+      if constexpr (NC == 6) Jd = Jy.template rightCols<3>();
+      if (width > 0) isotropic_blend(Fh.row(e).transpose(), width, p, &Js, NC == 6 ? &Jd : nullptr);
+      out.d_dFh[e] = Js;
+      if constexpr (NC == 6) out.d_dFhdot[e] = Jd;
+    } else if (width > 0) {
+      isotropic_blend(Fh.row(e).transpose(), width, p, nullptr, nullptr);
     }
+    out.dPh.row(e) = p.transpose();
     if (no == 4) out.dalpha[e] = y[3];
   }
 }
@@ -198,7 +251,7 @@ void MlpCorrection::run(const MatX3& Fh, const MatX3& Fhdot, bool jacobians, Cor
     const bool rate = !layers_[0].W.rightCols<3>().isZero(0.0);
     const auto fixed = [&](auto h, auto nc) {
       mlp_fixed<decltype(h)::value, decltype(nc)::value>(layers_, in_mean_, in_std_, out_mean_,
-                                                         out_std_, Fh, Fhdot, out);
+                                                         out_std_, width_, Fh, Fhdot, out);
     };
     using I0 = std::integral_constant<int, 0>;
     using I3 = std::integral_constant<int, 3>;
@@ -232,12 +285,17 @@ void MlpCorrection::run(const MatX3& Fh, const MatX3& Fhdot, bool jacobians, Cor
       if (jacobians) Ja = Jz;
     }
     const SmallV y = a.cwiseProduct(out_std_) + out_mean_;
-    out.dPh.row(e) = y.head<3>().transpose();
+    Vec3 p = y.head<3>();
     if (jacobians) {
       const Eigen::Matrix<double, 3, 6> Jy = out_std_.head<3>().asDiagonal() * Ja.topRows<3>();
-      out.d_dFh[e] = Jy.leftCols<3>();
-      out.d_dFhdot[e] = Jy.rightCols<3>();
+      Mat3 Js = Jy.leftCols<3>(), Jd = Jy.rightCols<3>();
+      if (width_ > 0) isotropic_blend(Fh.row(e).transpose(), width_, p, &Js, &Jd);
+      out.d_dFh[e] = Js;
+      out.d_dFhdot[e] = Jd;
+    } else if (width_ > 0) {
+      isotropic_blend(Fh.row(e).transpose(), width_, p, nullptr, nullptr);
     }
+    out.dPh.row(e) = p.transpose();
     // The Model uses dalpha's value only (its stretch derivative is left out of the tangent, as
     // for RbfCorrection).
     if (outputs_ == 4) out.dalpha[e] = y[3];

@@ -88,10 +88,20 @@ struct DenseLayer {
 /// the element's stiffness-damping alpha_K exactly as RbfCorrection's damping part (the Model
 /// clamps alpha_K + dalpha at 0, so this damping is passive by construction). Networks whose
 /// first-layer Fhdot columns are zero are rate-independent: d_dFhdot is then exactly 0.
+///
+/// Coincident stretches. A stress correction must be an isotropic function of F: dPh_i = dPh_j
+/// wherever s_i = s_j, or U diag(Ph) V^T depends on the arbitrary principal frame there and the
+/// force jumps (Newton then cycles between the two sides: measured on a distilled StVK bar, 68 of
+/// 300 steps hit the factorisation limit, the net's dPh_1 - dPh_2 being ~40 Pa at s_1 = s_2). A
+/// trained network is not exactly isotropic, so its stress outputs pass through
+/// isotropic_blend() with the width `isotropic_width` (stretch units; < 0: 0.1 x the mean input
+/// std of the stretches, i.e. a tenth of the training spread; 0: off): exact at coincidence,
+/// the raw network wherever all gaps |s_i - s_j| >= width, C1 in between.
 class MlpCorrection final : public Correction {
  public:
   MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX in_std, VecX out_mean,
-                VecX out_std);
+                VecX out_std, double isotropic_width = -1.0);
+  double isotropic_width() const { return width_; }
   void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
   /// No input Jacobians (the forward pass alone): bitwise the values of evaluate().
   void evaluate_values(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
@@ -101,6 +111,15 @@ class MlpCorrection final : public Correction {
   std::vector<DenseLayer> layers_;
   VecX in_mean_, in_std_, out_mean_, out_std_;
   int outputs_;  ///< 3 (dPh) or 4 (dPh, dalpha)
+  double width_;  ///< isotropic blend width (0: off)
 };
+
+/// Makes p (principal stress correction at stretches s, with Jacobians J = dp/ds and Jdot =
+/// dp/dsdot when given) consistent at coincident stretches: p' = (I + L)^{-1} p with the graph
+/// Laplacian L = sum over pairs ij of k(|s_i - s_j|) (e_i - e_j)(e_i - e_j)^T,
+/// k(d) = ((w/d)^2 - 1)^2 for d < w, else 0 (capped at 1e8). The mean of p is kept; p'_i = p'_j
+/// when s_i = s_j (all three equal when all coincide); p is untouched (bitwise) when every gap is
+/// >= w. J and Jdot become the exact derivatives of p'. Returns whether p changed.
+bool isotropic_blend(const Vec3& s, double w, Vec3& p, Mat3* J, Mat3* Jdot);
 
 }  // namespace matlearn::correction

@@ -141,6 +141,7 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
       throw NumericalError(os.str());
     }
     const double dv_norm = dv.norm();
+    timings_.updates.push_back(refresh ? -dv_norm : dv_norm);
     const bool slow = !refresh && it > 0 && dv_norm > opts_.reuse_ratio * prev_dv;
     if (slow && dv_norm >= prev_dv) {
       // The stale matrix does not contract here: discard this update and redo the iteration

@@ -37,6 +37,9 @@ struct StepTimings {
   double solve_s = 0;      ///< CHOLMOD triangular solves
   int iterations = 0;
   int factorizations = 0;  ///< iterations that evaluated the tangent and refactorised
+  /// Per iteration of the last step: |dv| (signed: negative for an iteration that used a freshly
+  /// factorised tangent), including discarded chord updates (for diagnosis and tests).
+  std::vector<double> updates;
 };
 
 /// Backward Euler for a Model with clamped vertices, gravity, external forces and optionally

@@ -105,17 +105,24 @@ void define_correction(py::module_& m) {
   py::class_<correction::MlpCorrection, Correction, std::shared_ptr<correction::MlpCorrection>>(
       m, "MlpCorrection")
       .def(py::init([](const std::vector<std::pair<MatX, VecX>>& layers, const VecX& in_mean,
-                       const VecX& in_std, const VecX& out_mean, const VecX& out_std) {
+                       const VecX& in_std, const VecX& out_mean, const VecX& out_std,
+                       double isotropic_width) {
              std::vector<correction::DenseLayer> L;
              for (auto& [W, b] : layers) L.push_back({W, b});
-             return std::make_shared<correction::MlpCorrection>(L, in_mean, in_std, out_mean, out_std);
+             return std::make_shared<correction::MlpCorrection>(L, in_mean, in_std, out_mean, out_std,
+                                                                isotropic_width);
            }),
            py::arg("layers"), py::arg("in_mean"), py::arg("in_std"), py::arg("out_mean"),
-           py::arg("out_std"),
+           py::arg("out_std"), py::arg("isotropic_width") = -1.0,
            "layers: list of (W (out x in), b (out)); ELU between layers; 6 inputs (Fh, Fhdot), "
            "3 outputs (dPh, Pa) or 4 (dPh, dalpha_K in s: the change of the element's "
            "stiffness-damping coefficient, clamped like the RBF's so alpha_K stays >= 0); "
-           "out_mean/out_std have one entry per output.");
+           "out_mean/out_std have one entry per output. isotropic_width (stretch units): the "
+           "stress outputs are blended to be equal at coincident principal stretches (a network "
+           "is not exactly isotropic; without this the stress jumps there and Newton cycles), "
+           "unchanged where every gap is >= the width; < 0: 0.1 x the mean stretch input std, 0: "
+           "the raw network.")
+      .def_property_readonly("isotropic_width", &correction::MlpCorrection::isotropic_width);
 
   py::class_<PythonCorrection, Correction, std::shared_ptr<PythonCorrection>>(m, "PythonCorrection")
       .def(py::init<py::function>(), py::arg("fn"));

@@ -57,6 +57,7 @@ void define_time(py::module_& m) {
             d["solve_s"] = t.solve_s;
             d["iterations"] = t.iterations;
             d["factorizations"] = t.factorizations;
+            d["updates"] = t.updates;
             return d;
           },
           "Wall-clock seconds per phase of the last step, summed over its Newton iterations.")

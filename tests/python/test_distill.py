@@ -2,6 +2,8 @@
 
 * the C++ evaluator equals torch's forward (batch norm and input mask folded at export), for
   the 4th output dalpha too, and its Jacobians pass a central finite-difference check;
+* its stress outputs are equal at coincident principal stretches (the isotropic blend), untouched
+  where every gap is >= the blend width, with exact Jacobians inside the blend;
 * old 3-output networks still load; malformed ones raise ValueError;
 * on a small bar, an MLP distilled from an RBF correction with a strain-dependent damping part
   replays a motion within a stated tolerance of the RBF model (and the damping part matters:
@@ -59,8 +61,11 @@ def test_cpp_mlp_equals_torch_forward(outputs, hidden, rate_inputs):
     X = np.concatenate([Fh, Fhd], axis=1)
     with torch.no_grad():
         want = net(torch.tensor((X - norm["in_mean"]) / norm["in_std"])).numpy() * norm["out_std"] + norm["out_mean"]
+    # (isotropic_width 0: the raw network, which is what torch evaluates; the blend at coincident
+    # stretches is tested below.)
     dP, _, _, dal = _core.correction.MlpCorrection(
-        exported["layers"], norm["in_mean"], norm["in_std"], norm["out_mean"], norm["out_std"]).evaluate(Fh, Fhd)
+        exported["layers"], norm["in_mean"], norm["in_std"], norm["out_mean"], norm["out_std"],
+        isotropic_width=0.0).evaluate(Fh, Fhd)
     assert np.abs(want[:, :3]).max() > 100  # a non-trivial net
     np.testing.assert_allclose(dP, want[:, :3], rtol=1e-12, atol=1e-10 * np.abs(want[:, :3]).max())
     if outputs == 4:
@@ -71,8 +76,11 @@ def test_cpp_mlp_equals_torch_forward(outputs, hidden, rate_inputs):
 
 @pytest.mark.parametrize("hidden,rate_inputs", [(6, True), (6, False), (5, True)])
 def test_cpp_mlp_jacobians_pass_finite_differences(hidden, rate_inputs):
-    _, _, exported = _random_net(4, hidden, rate_inputs, seed=7)
-    mc = mlp_correction(exported)
+    # The raw network (isotropic_width 0); the blend's Jacobians are checked in
+    # test_mlp_stress_is_consistent_at_coincident_stretches.
+    _, norm, exported = _random_net(4, hidden, rate_inputs, seed=7)
+    mc = _core.correction.MlpCorrection(exported["layers"], norm["in_mean"], norm["in_std"],
+                                        norm["out_mean"], norm["out_std"], isotropic_width=0.0)
     Fh, Fhd = _inputs(10, 2)
     _, J, Jd, _ = (np.asarray(a) for a in mc.evaluate(Fh, Fhd))
     h = 1e-6
@@ -90,6 +98,57 @@ def test_cpp_mlp_jacobians_pass_finite_differences(hidden, rate_inputs):
         np.testing.assert_array_equal(mc.evaluate(Fh, Fhd)[0], mc.evaluate(Fh, 0 * Fhd)[0])
     else:
         assert np.abs(Jd).max() > 1e-3 * np.abs(J).max()
+
+
+def _blend_states(width, n, seed):
+    """Sorted stretches whose two gaps s_1 - s_2, s_2 - s_3 are drawn in [0, 1.5 width); the first
+    6 rows coincide exactly (s_1 = s_2, then all three)."""
+    rng = np.random.default_rng(seed)
+    base = 1 + 0.05 * rng.standard_normal((n, 1))
+    g = width * rng.uniform(0, 1.5, (n, 2))
+    g[:3, 0] = 0
+    g[3:6] = 0
+    Fh = np.ascontiguousarray(np.c_[base + g[:, :1] + g[:, 1:], base + g[:, 1:], base])
+    return Fh, g
+
+
+@pytest.mark.parametrize("rate_inputs", [False, True])
+def test_mlp_stress_is_consistent_at_coincident_stretches(rate_inputs):
+    _, norm, ex = _random_net(4, 6, rate_inputs, seed=13)
+    args = (ex["layers"], norm["in_mean"], norm["in_std"], norm["out_mean"], norm["out_std"])
+    mc, raw = _core.correction.MlpCorrection(*args), _core.correction.MlpCorrection(*args, isotropic_width=0.0)
+    w = mc.isotropic_width
+    assert w == pytest.approx(0.1 * np.mean(norm["in_std"][:3]))  # the default: a tenth of the input spread
+    Fh, g = _blend_states(w, 300, 4)
+    Fhd = np.ascontiguousarray(0.5 * np.random.default_rng(5).standard_normal(Fh.shape))
+    P, J, Jd, dal = (np.asarray(a) for a in mc.evaluate(Fh, Fhd))
+    Pr, _, _, dal_r = (np.asarray(a) for a in raw.evaluate(Fh, Fhd))
+    spread = np.abs(Pr).max()
+    assert np.abs(Pr[:6, 0] - Pr[:6, 1]).min() > 1e-3 * spread  # the raw net is not isotropic
+    assert np.abs(P[:6, 0] - P[:6, 1]).max() < 1e-8 * spread  # the blend is, at s_1 = s_2 ...
+    assert np.abs(P[3:6, 1] - P[3:6, 2]).max() < 1e-8 * spread  # ... and where all three coincide
+    far = g.min(1) >= w
+    assert far.sum() > 20 and np.array_equal(P[far], Pr[far])  # untouched beyond the width
+    np.testing.assert_allclose(P.mean(1), Pr.mean(1), rtol=1e-12, atol=1e-9 * spread)  # mean kept
+    np.testing.assert_array_equal(dal, dal_r)  # dalpha is isotropic already
+    np.testing.assert_array_equal(np.asarray(mc.evaluate_values(Fh, Fhd)[0]), P)  # same values path
+    # Jacobians: central differences with a step well inside the blend, on rows whose gaps are
+    # >= w / 10 (closer, the blend's 3x3 solve is conditioned up to 3e8 and its round-off, though
+    # harmless, dominates a difference quotient) and not within 10 h of w (the blend is C1: its
+    # second derivative jumps there).
+    h = 1e-5 * w
+    inside = (g.min(1) >= 0.1 * w) & np.all(np.abs(g - w) > 10 * h, axis=1)
+    assert (inside & ~far).sum() > 100
+    for which, Jw in ((0, J), (1, Jd)):
+        for j in range(3):
+            dp, dm = [Fh.copy(), Fhd.copy()], [Fh.copy(), Fhd.copy()]
+            dp[which][:, j] += h
+            dm[which][:, j] -= h
+            fd = (np.asarray(mc.evaluate(*dp)[0]) - np.asarray(mc.evaluate(*dm)[0])) / (2 * h)
+            err = np.abs(fd - Jw[:, :, j])[inside]
+            assert err.max() <= 1e-5 * np.abs(Jw[inside]).max(), (which, j, err.max())
+    if not rate_inputs:
+        assert np.all(Jd == 0)
 
 
 def test_mlp_rejects_malformed_networks():
