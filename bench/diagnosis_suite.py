@@ -165,6 +165,10 @@ def _strict(row) -> bool:
 
 
 def totals(rows):
+    # a case whose random truth could not be simulated (build_case failed) has nothing to
+    # diagnose: listed in truth_failed_cases, not scored
+    unbuilt = [r["case"] for r in rows if r.get("truth_failed")]
+    rows = [r for r in rows if not r.get("truth_failed")]
     eff = [r for r in rows if r["true_effects"]]
     ctrl = [r for r in rows if not r["true_effects"]]
     shrink = [1 - r["gap_after_pct"] / r["gap_before_pct"] for r in eff if r["gap_before_pct"]]
@@ -177,6 +181,7 @@ def totals(rows):
         "top1_strict_all_cases": f"{sum(_strict(r) for r in rows)}/{len(rows)}",
         "control_clean": all(r["verdict"] == [] for r in ctrl),
         "failed_cases": [r["case"] for r in rows if r.get("error")],
+        "truth_failed_cases": unbuilt,
         "mean_region_iou": float(np.mean(ious)) if ious else None,
         "median_gap_shrink": float(np.median(shrink)) if shrink else None,
         "total_wall_s": float(sum(r["wall_s"] for r in rows)),
@@ -204,8 +209,10 @@ def run_set(specs: dict, work: Path, names, fresh: bool, rediagnose: bool, seed0
             continue
         print(f"== {name} ({i + 1}/{len(names)}): building truth", file=sys.stderr, flush=True)
         t0 = time.time()
+        built = False
         try:
             path, region_model = build_case(work, name, spec, seed=seed, reuse=not fresh)
+            built = True
             t0 = time.time()
             result = diagnose(path, work / name / "diagnosis", seed=0,
                               report=(name in ("heterogeneity",)))
@@ -214,9 +221,12 @@ def run_set(specs: dict, work: Path, names, fresh: bool, rediagnose: bool, seed0
             row = {"case": name, "true_effects": spec["effects"], "verdict": None,
                    "top1_correct": False, "region_iou": None, "gap_before_pct": None,
                    "gap_after_pct": None, "wall_s": time.time() - t0, "error": str(err)}
+            if not built:  # the random truth itself could not be simulated: no case to diagnose
+                row["truth_failed"] = True
+                row["error"] = f"truth could not be built: {err}"
         try:
-            row["effect_pct"] = effect_size(work, name, spec, seed)
-        except (RuntimeError, ValueError) as err:
+            row["effect_pct"] = effect_size(work, name, spec, seed) if built else None
+        except (RuntimeError, ValueError, OSError) as err:
             row["effect_pct"] = None
             print(f"{name}: effect size failed ({err})", file=sys.stderr)
         row["shape"] = spec["shape"]["kind"]

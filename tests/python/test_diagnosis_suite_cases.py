@@ -106,3 +106,34 @@ def test_heterogeneity_region_maps_to_model_elements():
     assert np.isclose(E.max() / E.min(), 2.5)
     C = np.asarray(model.vertices)[np.asarray(model.tets)].mean(axis=1)
     assert np.all((C[region, 0] >= 0.25 * L) & (C[region, 0] <= 0.6 * L)) and len(region) > 0
+
+
+def test_a_case_whose_truth_cannot_be_built_is_reported_not_scored_and_the_run_goes_on(tmp_path, monkeypatch):
+    """A random spec can ask for a truth the simulator cannot hold (e.g. a strongly softening
+    compression law): the row says so, the totals leave it out, the next case still runs
+    (random seed 3's last case used to stop the run without a results file)."""
+    specs = {"a_control": {"effects": []}, "b_bad": {"effects": ["compression_nonlinearity"]}}
+    calls = []
+
+    def build(work, name, spec, seed, reuse=True):
+        calls.append(name)
+        if name == "b_bad":
+            raise RuntimeError("static_solve: Newton did not converge")
+        return tmp_path / name / "scene.toml", None
+
+    def diagnose(*a, **k):  # a built case whose diagnosis fails still counts
+        raise ValueError("diagnosis failed")
+
+    monkeypatch.setattr(ds, "build_case", build)
+    monkeypatch.setattr(ds, "diagnose", diagnose)
+    monkeypatch.setattr(ds, "effect_size", lambda work, name, *a: None if name == "a_control"
+                        else pytest.fail("no effect size without a case"))
+    rows = ds.run_set({k: dict(v, shape={"kind": "bar"}, motions=[]) for k, v in specs.items()},
+                      tmp_path, ["b_bad", "a_control"], fresh=True, rediagnose=False)
+    assert calls == ["b_bad", "a_control"]
+    bad = next(r for r in rows if r["case"] == "b_bad")
+    assert bad["truth_failed"] and bad["error"].startswith("truth could not be built")
+    t = ds.totals(rows)
+    assert t["truth_failed_cases"] == ["b_bad"] and t["cases"] == 1
+    assert t["top1_accuracy"] is None and t["failed_cases"] == ["a_control"]
+    assert t["control_clean"] is False
