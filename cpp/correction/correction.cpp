@@ -22,10 +22,19 @@ static void resize_output(int m, CorrectionOutput& out, bool jacobians = true) {
 
 RbfCorrection::RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bias,
                              VecX alpha_weights, double alpha_bias, double epsilon,
-                             VecX lower, VecX upper)
+                             VecX lower, VecX upper, double isotropic_width)
     : c_(std::move(centers)), w_(std::move(weights)), A_(linear), b_(bias),
       wa_(std::move(alpha_weights)), a0_(alpha_bias), eps_(epsilon), lo_(std::move(lower)),
-      hi_(std::move(upper)) {
+      hi_(std::move(upper)), width_(isotropic_width) {
+  if (!std::isfinite(width_)) throw InvalidInput("RbfCorrection: isotropic_width must be finite");
+  if (width_ < 0) {  // 0.1 x the mean per-axis (population) std of the centres
+    double sd = 0;
+    for (int j = 0; j < 3; ++j) {
+      const double m = c_.col(j).mean();
+      sd += std::sqrt((c_.col(j).array() - m).square().mean());
+    }
+    width_ = c_.rows() > 0 ? 0.1 * sd / 3.0 : 0.0;
+  }
   if (lo_.size() != hi_.size() || (lo_.size() != 0 && lo_.size() != 3))
     throw InvalidInput("RbfCorrection: lower/upper must both be empty or have 3 entries");
   if (lo_.size() == 3 && (!lo_.allFinite() || !hi_.allFinite() || (lo_.array() > hi_.array()).any()))
@@ -61,6 +70,7 @@ void RbfCorrection::element(const Vec3& s, Vec3& p, double& da, Mat3* J) const {
     }
     if (damp) da += wa_[k] * phi_c;
   }
+  if (width_ > 0) isotropic_blend(s, width_, p, J, nullptr);
 }
 
 void RbfCorrection::evaluate(const MatX3& Fh, const MatX3&, CorrectionOutput& out) const {
@@ -112,51 +122,6 @@ MlpCorrection::MlpCorrection(std::vector<DenseLayer> layers, VecX in_mean, VecX 
       throw InvalidInput("MlpCorrection: weights contain NaN or Inf");
   if (!std::isfinite(width_)) throw InvalidInput("MlpCorrection: isotropic_width must be finite");
   if (width_ < 0) width_ = 0.1 * in_std_.head<3>().mean();
-}
-
-bool isotropic_blend(const Vec3& s, double w, Vec3& p, Mat3* J, Mat3* Jdot) {
-  static const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
-  constexpr double kCap = 1e8;
-  double k[3], dk[3], sg[3];
-  bool any = false;
-  for (int q = 0; q < 3; ++q) {
-    const double diff = s[pairs[q][0]] - s[pairs[q][1]], d = std::abs(diff);
-    sg[q] = diff < 0 ? -1.0 : 1.0;
-    k[q] = dk[q] = 0.0;
-    if (!(d < w)) continue;
-    any = true;
-    const double r = d > 0 ? (w / d) * (w / d) - 1.0 : 0.0;
-    if (d == 0 || r * r >= kCap) {
-      k[q] = kCap;  // (the dropped derivative term is ~ p-gap * d^3 / w^4: negligible here)
-    } else {
-      k[q] = r * r;
-      dk[q] = -4.0 * r * w * w / (d * d * d);
-    }
-  }
-  if (!any) return false;
-  Mat3 A = Mat3::Identity();
-  Vec3 l[3];
-  for (int q = 0; q < 3; ++q) {
-    l[q] = Vec3::Zero();
-    l[q][pairs[q][0]] = 1.0;
-    l[q][pairs[q][1]] = -1.0;
-    A += k[q] * l[q] * l[q].transpose();
-  }
-  const Mat3 S = A.inverse();  // symmetric positive definite, eigenvalues in [1, 1 + 3 kCap]
-  // S keeps constants (L 1 = 0), so only the deviation from the mean changes; the projector Z
-  // onto zero-mean vectors removes what round-off in S (condition up to ~3e8) leaks into the mean.
-  const Mat3 Z = Mat3::Identity() - Mat3::Constant(1.0 / 3.0);
-  const Mat3 M = Mat3::Constant(1.0 / 3.0);
-  const double mean = p.mean();
-  p = Vec3::Constant(mean) + Z * (S * (p - Vec3::Constant(mean)));
-  if (J) {
-    Mat3 Jn = S * *J;
-    for (int q = 0; q < 3; ++q)
-      if (dk[q] != 0.0) Jn -= (dk[q] * sg[q] * l[q].dot(p)) * (S * l[q]) * l[q].transpose();
-    *J = M * *J + Z * Jn;
-  }
-  if (Jdot) *Jdot = M * *Jdot + Z * (S * *Jdot);
-  return true;
 }
 
 namespace {

@@ -4,6 +4,7 @@
 #include <vector>
 
 #include "common/types.hpp"
+#include "correction/isotropy.hpp"
 
 namespace matlearn::correction {
 
@@ -41,10 +42,17 @@ class Correction {
 /// so the correction extrapolates to first order from the edge of the data (continuous, growth
 /// at most linear, slope = the edge slope); the damping kernels are evaluated at sc (constant
 /// beyond the box).
+/// A fitted RBF is not exactly isotropic either (dPh_i != dPh_j at s_i = s_j: measured 800-1700
+/// Pa on a learned compression sphere, whose replay then stalls); `isotropic_width` > 0 (stretch
+/// units) passes dPh through isotropic_blend() as MlpCorrection does; < 0: 0.1 x the mean per-axis
+/// std of the centres (k-means of the fitted stretches: a tenth of their spread); 0 (default):
+/// off, the raw RBF. dalpha is a scalar per element, isotropic already.
 class RbfCorrection final : public Correction {
  public:
   RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bias, VecX alpha_weights,
-                double alpha_bias, double epsilon, VecX lower = VecX(), VecX upper = VecX());
+                double alpha_bias, double epsilon, VecX lower = VecX(), VecX upper = VecX(),
+                double isotropic_width = 0.0);
+  double isotropic_width() const { return width_; }
   void evaluate(const MatX3& Fh, const MatX3& Fhdot, CorrectionOutput& out) const override;
   /// No kernel gradients; inside the box each kernel is phi alone (the extension term is an
   /// exact +0 there), so the values are bitwise those of evaluate().
@@ -60,6 +68,7 @@ class RbfCorrection final : public Correction {
   VecX wa_;
   double a0_, eps_;
   VecX lo_, hi_;
+  double width_;  ///< isotropic blend width (0: off)
 };
 
 /// Elastic kernel g(s) of RbfCorrection (box extension above) and its gradient dg/ds.
@@ -113,13 +122,5 @@ class MlpCorrection final : public Correction {
   int outputs_;  ///< 3 (dPh) or 4 (dPh, dalpha)
   double width_;  ///< isotropic blend width (0: off)
 };
-
-/// Makes p (principal stress correction at stretches s, with Jacobians J = dp/ds and Jdot =
-/// dp/dsdot when given) consistent at coincident stretches: p' = (I + L)^{-1} p with the graph
-/// Laplacian L = sum over pairs ij of k(|s_i - s_j|) (e_i - e_j)(e_i - e_j)^T,
-/// k(d) = ((w/d)^2 - 1)^2 for d < w, else 0 (capped at 1e8). The mean of p is kept; p'_i = p'_j
-/// when s_i = s_j (all three equal when all coincide); p is untouched (bitwise) when every gap is
-/// >= w. J and Jdot become the exact derivatives of p'. Returns whether p changed.
-bool isotropic_blend(const Vec3& s, double w, Vec3& p, Mat3* J, Mat3* Jdot);
 
 }  // namespace matlearn::correction

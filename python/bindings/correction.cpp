@@ -89,18 +89,26 @@ void define_correction(py::module_& m) {
       m, "RbfCorrection")
       .def(py::init([](const py::array& centers, const py::array& weights, const Mat3& linear,
                        const Vec3& bias, const py::array& alpha_weights, double alpha_bias,
-                       double epsilon, const py::object& lower, const py::object& upper) {
+                       double epsilon, const py::object& lower, const py::object& upper,
+                       double isotropic_width) {
              const MatX3 c = as_matrix<3>(centers, "centers");
              const VecX lo = lower.is_none() ? VecX() : VecX(as_matrix<1>(lower, "lower"));
              const VecX hi = upper.is_none() ? VecX() : VecX(as_matrix<1>(upper, "upper"));
              return std::make_shared<correction::RbfCorrection>(
                  c, as_matrix<3>(weights, "weights", c.rows()), linear, bias,
-                 as_matrix<1>(alpha_weights, "alpha_weights"), alpha_bias, epsilon, lo, hi);
+                 as_matrix<1>(alpha_weights, "alpha_weights"), alpha_bias, epsilon, lo, hi,
+                 isotropic_width);
            }),
            py::arg("centers"), py::arg("weights"), py::arg("linear"), py::arg("bias"),
            py::arg("alpha_weights"), py::arg("alpha_bias"), py::arg("epsilon"),
            py::arg("lower") = py::none(), py::arg("upper") = py::none(),
-           "lower, upper: optional (3,) box the kernels clamp the stretches to (None: no clamp).");
+           py::arg("isotropic_width") = 0.0,
+           "lower, upper: optional (3,) box the kernels clamp the stretches to (None: no clamp). "
+           "isotropic_width (stretch units): dPh blended to be equal at coincident principal "
+           "stretches as MlpCorrection's (a fitted RBF is not exactly isotropic), unchanged where "
+           "every gap is >= the width; < 0: 0.1 x the mean per-axis std of the centres; 0 "
+           "(default): off, the raw RBF.")
+      .def_property_readonly("isotropic_width", &correction::RbfCorrection::isotropic_width);
 
   py::class_<correction::MlpCorrection, Correction, std::shared_ptr<correction::MlpCorrection>>(
       m, "MlpCorrection")

@@ -78,6 +78,9 @@ from .. import _core
 # (linear, edge) extrapolation-penalty candidates per smoothing weight: free, and penalised
 # (module docstring; LearnOptions.extrapolation)
 EXTRAPOLATION_WEIGHTS = ((0.0, 0.0), (1.0, 10.0))
+# RbfCorrection isotropic_width of every correction built from RbfParams (the blend at coincident
+# stretches, cpp/correction/isotropy.hpp; < 0: 0.1 x the centres' std); 0: off (the default)
+RBF_ISOTROPIC_WIDTH = 0.0
 
 
 @dataclass
@@ -106,7 +109,7 @@ class RbfParams:
             np.ascontiguousarray(self.centers, float), np.ascontiguousarray(self.weights, float),
             np.asarray(self.linear, float), np.asarray(self.bias, float),
             np.asarray(self.alpha_weights, float), float(self.alpha_bias), float(self.epsilon),
-            lower=lo, upper=hi)
+            lower=lo, upper=hi, isotropic_width=RBF_ISOTROPIC_WIDTH)
 
     def to_arrays(self, prefix: str = "rbf_") -> dict:
         return {prefix + k: np.asarray(getattr(self, k), float) for k in
