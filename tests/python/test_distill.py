@@ -21,6 +21,7 @@ from matlearn.learning.io import mlp_correction
 from matlearn.materials import Damping, Material
 from matlearn.scene import Scene
 
+from isotropy_checks import check_blend, coincident_states, fd_rows
 from learning_cases import nominal_energy
 
 
@@ -100,18 +101,6 @@ def test_cpp_mlp_jacobians_pass_finite_differences(hidden, rate_inputs):
         assert np.abs(Jd).max() > 1e-3 * np.abs(J).max()
 
 
-def _blend_states(width, n, seed):
-    """Sorted stretches whose two gaps s_1 - s_2, s_2 - s_3 are drawn in [0, 1.5 width); the first
-    6 rows coincide exactly (s_1 = s_2, then all three)."""
-    rng = np.random.default_rng(seed)
-    base = 1 + 0.05 * rng.standard_normal((n, 1))
-    g = width * rng.uniform(0, 1.5, (n, 2))
-    g[:3, 0] = 0
-    g[3:6] = 0
-    Fh = np.ascontiguousarray(np.c_[base + g[:, :1] + g[:, 1:], base + g[:, 1:], base])
-    return Fh, g
-
-
 @pytest.mark.parametrize("rate_inputs", [False, True])
 def test_mlp_stress_is_consistent_at_coincident_stretches(rate_inputs):
     _, norm, ex = _random_net(4, 6, rate_inputs, seed=13)
@@ -119,26 +108,14 @@ def test_mlp_stress_is_consistent_at_coincident_stretches(rate_inputs):
     mc, raw = _core.correction.MlpCorrection(*args), _core.correction.MlpCorrection(*args, isotropic_width=0.0)
     w = mc.isotropic_width
     assert w == pytest.approx(0.1 * np.mean(norm["in_std"][:3]))  # the default: a tenth of the input spread
-    Fh, g = _blend_states(w, 300, 4)
+    Fh, g = coincident_states(w, 300, 4)
     Fhd = np.ascontiguousarray(0.5 * np.random.default_rng(5).standard_normal(Fh.shape))
     P, J, Jd, dal = (np.asarray(a) for a in mc.evaluate(Fh, Fhd))
     Pr, _, _, dal_r = (np.asarray(a) for a in raw.evaluate(Fh, Fhd))
-    spread = np.abs(Pr).max()
-    assert np.abs(Pr[:6, 0] - Pr[:6, 1]).min() > 1e-3 * spread  # the raw net is not isotropic
-    assert np.abs(P[:6, 0] - P[:6, 1]).max() < 1e-8 * spread  # the blend is, at s_1 = s_2 ...
-    assert np.abs(P[3:6, 1] - P[3:6, 2]).max() < 1e-8 * spread  # ... and where all three coincide
-    far = g.min(1) >= w
-    assert far.sum() > 20 and np.array_equal(P[far], Pr[far])  # untouched beyond the width
-    np.testing.assert_allclose(P.mean(1), Pr.mean(1), rtol=1e-12, atol=1e-9 * spread)  # mean kept
-    np.testing.assert_array_equal(dal, dal_r)  # dalpha is isotropic already
+    far = check_blend(P, Pr, dal, dal_r, g, w)
     np.testing.assert_array_equal(np.asarray(mc.evaluate_values(Fh, Fhd)[0]), P)  # same values path
-    # Jacobians: central differences with a step well inside the blend, on rows whose gaps are
-    # >= w / 10 (closer, the blend's 3x3 solve is conditioned up to 3e8 and its round-off, though
-    # harmless, dominates a difference quotient) and not within 10 h of w (the blend is C1: its
-    # second derivative jumps there).
     h = 1e-5 * w
-    inside = (g.min(1) >= 0.1 * w) & np.all(np.abs(g - w) > 10 * h, axis=1)
-    assert (inside & ~far).sum() > 100
+    inside = fd_rows(g, w, h, far)
     for which, Jw in ((0, J), (1, Jd)):
         for j in range(3):
             dp, dm = [Fh.copy(), Fhd.copy()], [Fh.copy(), Fhd.copy()]

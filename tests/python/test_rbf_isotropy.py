@@ -13,6 +13,8 @@ import pytest
 
 from matlearn import _core
 
+from isotropy_checks import check_blend, coincident_states, fd_rows
+
 
 def _rbf(width, box=0.3, seed=3):
     """A random RBF with a damping part; its kernel box [1 - box, 1 + box]^3."""
@@ -25,40 +27,19 @@ def _rbf(width, box=0.3, seed=3):
             _core.correction.RbfCorrection(*args, lower=lo, upper=hi))
 
 
-def _states(width, n, seed, spread=0.05):
-    """Sorted stretches whose gaps s_1 - s_2, s_2 - s_3 are drawn in [0, 1.5 width); the first 6
-    rows coincide exactly (s_1 = s_2, then all three)."""
-    rng = np.random.default_rng(seed)
-    base = 1 + spread * rng.standard_normal((n, 1))
-    g = width * rng.uniform(0, 1.5, (n, 2))
-    g[:3, 0] = 0
-    g[3:6] = 0
-    return np.ascontiguousarray(np.c_[base + g[:, :1] + g[:, 1:], base + g[:, 1:], base]), g
-
-
 def test_rbf_stress_is_consistent_at_coincident_stretches():
     w = 0.02
     rbf, raw = _rbf(w)
     assert raw.isotropic_width == 0.0 and rbf.isotropic_width == w  # default: off
-    Fh, g = _states(w, 300, 4)
+    Fh, g = coincident_states(w, 300, 4)
     Z = np.zeros_like(Fh)
     P, J, Jd, dal = (np.asarray(a) for a in rbf.evaluate(Fh, Z))
     Pr, _, _, dal_r = (np.asarray(a) for a in raw.evaluate(Fh, Z))
-    spread = np.abs(Pr).max()
-    assert np.abs(Pr[:6, 0] - Pr[:6, 1]).min() > 1e-3 * spread  # the raw RBF is not isotropic
-    assert np.abs(P[:6, 0] - P[:6, 1]).max() < 1e-8 * spread  # the blend is, at s_1 = s_2 ...
-    assert np.abs(P[3:6, 1] - P[3:6, 2]).max() < 1e-8 * spread  # ... and where all three coincide
-    far = g.min(1) >= w
-    assert far.sum() > 20 and np.array_equal(P[far], Pr[far])  # untouched beyond the width
+    far = check_blend(P, Pr, dal, dal_r, g, w)
     assert not np.array_equal(P[~far], Pr[~far])
-    np.testing.assert_allclose(P.mean(1), Pr.mean(1), rtol=1e-12, atol=1e-9 * spread)  # mean kept
-    np.testing.assert_array_equal(dal, dal_r)  # dalpha is a scalar: isotropic already
     assert np.all(Jd == 0)  # rate-independent
-    # Central differences well inside the blend, on rows whose gaps are >= w / 10 (closer, the
-    # blend's 3x3 solve is conditioned up to 3e8) and not within 10 h of w (the blend is C1).
     h = 1e-5 * w
-    inside = (g.min(1) >= 0.1 * w) & np.all(np.abs(g - w) > 10 * h, axis=1)
-    assert (inside & ~far).sum() > 100
+    inside = fd_rows(g, w, h, far)
     for j in range(3):
         dp, dm = Fh.copy(), Fh.copy()
         dp[:, j] += h
@@ -75,7 +56,7 @@ def test_rbf_stress_is_consistent_at_coincident_stretches():
 def test_rbf_blend_values_path_is_bitwise_the_full_path():
     w = 0.03
     rbf, _ = _rbf(w, box=0.08)  # a tight box: many states beyond it (the kernel extension)
-    Fh, _ = _states(w, 400, 9, spread=0.1)
+    Fh, _ = coincident_states(w, 400, 9, spread=0.1)
     lo, hi = 0.92, 1.08
     outside = np.any((Fh < lo) | (Fh > hi), axis=1)
     assert 50 < outside.sum() < 350
