@@ -194,8 +194,6 @@ def usable_recording(rec: Recording, scene: Scene, label: str) -> Recording:
       and is estimated from the markers anyway (formats.md), so it starts where they are
       first seen;
     * at least 2 frames with seen markers remain (a motion to compare against)."""
-    from ..embedding import embed_points
-
     emb = embed_points(scene.mesh, rec.marker_rest)
     size = scene.object_size
     far = np.asarray(emb.distance, float)
@@ -274,8 +272,6 @@ def initial_velocity(scene, model, rec: Recording, embedding, x0: np.ndarray, fr
     first frame's markers moved by tau times their velocity (marker_velocity), minus the held
     pose x0, over tau (the first frames' span; the held-pose map is nearly linear over it, and
     the noise of frame 0 cancels in the difference). Zero where it cannot be estimated."""
-    from .. import replay
-
     n = scene.mesh.num_vertices
     v = marker_velocity(rec, frames)
     ok = np.isfinite(v).all(axis=1) & rec.seen[0]
