@@ -37,14 +37,15 @@ MIN_WINDOW_FRAMES = 3
 _DENSE_EIG_DOFS = 1500  # dense eigensolver below this many free DOFs, shift-invert Lanczos above
 
 
-def _free_dofs(scene, rec) -> tuple[np.ndarray, np.ndarray]:
-    """(driven vertices (D,), free undriven DOFs (3m,)) of the recording on the scene."""
+def _free_dofs(scene, rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(driven vertices (D,), their targets (frames, D, 3), free undriven DOFs (3m,)) of the
+    recording on the scene (replay.drive_vertices)."""
     from .replay import drive_vertices
 
-    didx, _ = drive_vertices(scene, rec)
+    didx, targets = drive_vertices(scene, rec)
     n = scene.mesh.num_vertices
     keep = np.setdiff1d(np.arange(n), np.union1d(np.asarray(scene.fixed), didx))
-    return didx, (3 * keep[:, None] + np.arange(3)).ravel()
+    return didx, targets, (3 * keep[:, None] + np.arange(3)).ravel()
 
 
 def vibration_modes(model, x: np.ndarray, dofs: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
@@ -179,10 +180,8 @@ def released_start(scene, model, rec, emb, x_held: np.ndarray, integ=None,
                    mode_counts=MODE_COUNTS, refine_modes: int = REFINE_MODES) -> np.ndarray:
     """The released start x0 (n, 3) of `rec` (velocity zero) from its held pose `x_held`; see the
     module docstring. `integ`: an integrator of the scene with `model` (made if None)."""
-    from .replay import drive_vertices
-
     x_held = np.asarray(x_held, float)
-    didx, dofs = _free_dofs(scene, rec)
+    didx, dtargets, dofs = _free_dofs(scene, rec)
     if len(dofs) == 0:
         return x_held.copy()
     rmax = int(min(max(max(mode_counts, default=0), refine_modes), len(dofs)))
@@ -207,5 +206,5 @@ def released_start(scene, model, rec, emb, x_held: np.ndarray, integ=None,
             pass
     if len(didx):
         best = best.copy()
-        best[didx] = drive_vertices(scene, rec)[1][0]
+        best[didx] = dtargets[0]
     return best
