@@ -26,11 +26,12 @@ from pathlib import Path
 import numpy as np
 
 from matlearn import cases
+from matlearn.embedding import embed_points
 from matlearn.learning import LearnOptions
 from matlearn.learning.baseline import baseline_test_errors, fit_parameters
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS
 from matlearn.learning.start import MODES, learn_from
-from matlearn.materials import make_model
+from matlearn.materials import Material, make_model
 from matlearn.replay import SCORE_START, STARTS, score
 from matlearn.scene import load_scene
 
@@ -134,8 +135,6 @@ def homogenised_modulus(fine, E, coarse, samples: int = 512, seed: int = 0) -> n
     Vc, Tc = np.asarray(coarse.vertices), np.asarray(coarse.tets)
     w = np.random.default_rng(seed).dirichlet(np.ones(4), size=samples)
     P = np.einsum("sk,tkd->tsd", w, Vc[Tc]).reshape(-1, 3)
-    from matlearn.embedding import embed_points
-
     return np.exp(np.log(E[embed_points(fine, P).tet]).reshape(len(Tc), samples).mean(axis=1))
 
 
@@ -146,8 +145,6 @@ def homogenised_truth_errors(spec, scene, samples: int = 512, seed: int = 0) -> 
     (a function of principal stretches only, the same in every element) cannot represent; a
     reference, not a floor (an isotropic element can match neither the along- nor the
     across-layer modulus of a laminate)."""
-    from matlearn.materials import Material
-
     kw = spec.kwargs
     mat = kw["truth_material"]
     if kw["truth_mesh"] is kw["model_mesh"] or kw.get("truth_correction") is not None:
