@@ -183,16 +183,16 @@ void mlp_fixed(const std::vector<DenseLayer>& L, const VecX& in_mean, const VecX
     }
     const Eigen::Vector4d y = (W2 * z1 + b2).cwiseProduct(os) + om;
     Vec3 p = y.head<3>();
+    Mat3 Js, Jd = Mat3::Zero();
     if constexpr (NC > 0) {
       const Eigen::Matrix<double, 3, NC> Jy = os.head<3>().asDiagonal() * (W2.template topRows<3>() * J1);
-      Mat3 Js = Jy.template leftCols<3>(), Jd = Mat3::Zero();
+      Js = Jy.template leftCols<3>();
       if constexpr (NC == 6) Jd = Jy.template rightCols<3>();
-      if (width > 0) isotropic_blend(Fh.row(e).transpose(), width, p, &Js, NC == 6 ? &Jd : nullptr);
-      out.d_dFh[e] = Js;
-      if constexpr (NC == 6) out.d_dFhdot[e] = Jd;
-    } else if (width > 0) {
-      isotropic_blend(Fh.row(e).transpose(), width, p, nullptr, nullptr);
     }
+    if (width > 0)
+      isotropic_blend(Fh.row(e).transpose(), width, p, NC > 0 ? &Js : nullptr, NC == 6 ? &Jd : nullptr);
+    if constexpr (NC > 0) out.d_dFh[e] = Js;
+    if constexpr (NC == 6) out.d_dFhdot[e] = Jd;
     out.dPh.row(e) = p.transpose();
     if (no == 4) out.dalpha[e] = y[3];
   }
@@ -251,14 +251,17 @@ void MlpCorrection::run(const MatX3& Fh, const MatX3& Fhdot, bool jacobians, Cor
     }
     const SmallV y = a.cwiseProduct(out_std_) + out_mean_;
     Vec3 p = y.head<3>();
+    Mat3 Js, Jd;
     if (jacobians) {
       const Eigen::Matrix<double, 3, 6> Jy = out_std_.head<3>().asDiagonal() * Ja.topRows<3>();
-      Mat3 Js = Jy.leftCols<3>(), Jd = Jy.rightCols<3>();
-      if (width_ > 0) isotropic_blend(Fh.row(e).transpose(), width_, p, &Js, &Jd);
+      Js = Jy.leftCols<3>();
+      Jd = Jy.rightCols<3>();
+    }
+    if (width_ > 0)
+      isotropic_blend(Fh.row(e).transpose(), width_, p, jacobians ? &Js : nullptr, jacobians ? &Jd : nullptr);
+    if (jacobians) {
       out.d_dFh[e] = Js;
       out.d_dFhdot[e] = Jd;
-    } else if (width_ > 0) {
-      isotropic_blend(Fh.row(e).transpose(), width_, p, nullptr, nullptr);
     }
     out.dPh.row(e) = p.transpose();
     // The Model uses dalpha's value only (its stretch derivative is left out of the tangent, as
