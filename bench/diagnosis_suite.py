@@ -295,7 +295,11 @@ def main(argv=None):
     if args.build_only:
         for name in names:
             seed = seed0 + list(specs).index(name)
-            build_case(work, name, specs[name], seed=seed, reuse=not args.fresh)
+            try:
+                build_case(work, name, specs[name], seed=seed, reuse=not args.fresh)
+            except RuntimeError as err:  # as in a full run: reported, the other cases still built
+                print(f"{name}: truth could not be built ({err})", file=sys.stderr, flush=True)
+                continue
             print(f"{name}: built, effect {effect_size(work, name, specs[name], seed)}", file=sys.stderr, flush=True)
         return
     rows = run_set(specs, work, names, args.fresh, args.rediagnose, seed0, args.collect)
