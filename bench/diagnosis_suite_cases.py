@@ -102,16 +102,30 @@ class PlasticSetCorrection:
 class SidePoly:
     """One-sided nonlinearity of a shape unlike the diagnosis family: exponential
     stiffening/softening E * a * (exp(b d) - 1 - b d) / b on one side of s = 1 (side +1: tension,
-    -1: compression; a < 0 softens)."""
+    -1: compression; a < 0 softens), continued linearly (C1) beyond the stretch `d_cap` where
+    the added tangent E a (exp(b d) - 1) reaches 99 E a (stiffening) or leaves a quarter of the
+    nominal tangent E (softening). The truth's motions stay far inside it; without the cap a
+    Newton iterate of the truth's static hold that overshoots (stretch 3.5x, exp(105)) or a
+    softening whose total tangent turns negative made the truth unbuildable (random seeds 3-5)."""
 
     def __init__(self, E, a, b, side):
         self.E, self.a, self.b, self.side = E, a, b, side
+        growth = 100.0 if a > 0 else 1.0 + 0.75 / abs(a)  # exp(b d_cap)
+        self.d_cap = float(np.log(growth) / b)
+
+    def _law(self, d):
+        E, a, b = self.E, self.a, self.b
+        return E * a * (np.exp(b * d) - 1 - b * d) / b, E * a * (np.exp(b * d) - 1)
 
     def __call__(self, Fh, Fhdot):
         Fh = np.asarray(Fh)
         d = np.clip(self.side * (Fh - 1.0), 0, None)
-        P = self.side * self.E * self.a * (np.exp(self.b * d) - 1 - self.b * d) / self.b
-        dd = self.E * self.a * (np.exp(self.b * d) - 1)
+        p_cap, dd_cap = self._law(self.d_cap)
+        p, dd = self._law(np.minimum(d, self.d_cap))
+        beyond = d > self.d_cap
+        p = np.where(beyond, p_cap + dd_cap * (d - self.d_cap), p)
+        dd = np.where(beyond, dd_cap, dd)
+        P = self.side * p
         J = np.zeros(Fh.shape + (3,))
         J[:, np.arange(3), np.arange(3)] = dd
         return P, J, None, None
