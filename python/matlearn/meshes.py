@@ -100,7 +100,8 @@ VOLUME_SUFFIXES = {".msh", ".vtk", ".vtu", ".node", ".ele", ".mesh"}
 
 def load_mesh(path, max_volume: float | None = None, min_ratio: float | None = None) -> TetMesh:
     """Load a tet mesh (.msh/.vtk/.vtu/TetGen .node+.ele) or tetrahedralise a closed surface
-    (.obj/.ply/.stl/.off) with TetGen."""
+    (.obj/.ply/.stl/.off) with TetGen. Tets of a volume mesh are re-oriented to positive volume
+    (files from other tools may use the opposite vertex order); quadratic tets keep their corners."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"mesh file not found: {path}")
@@ -125,7 +126,8 @@ def load_mesh(path, max_volume: float | None = None, min_ratio: float | None = N
         import meshio
 
         m = meshio.read(path)
-        tets = [c.data for c in m.cells if c.type == "tetra"]
+        # quadratic tets (gmsh/VTK second order): their first four nodes are the corners
+        tets = [c.data[:, :4] for c in m.cells if c.type in ("tetra", "tetra10")]
         if not tets:
             raise ValueError(f"{path}: no tetrahedra found (cell types: {[c.type for c in m.cells]})")
         V = np.asarray(m.points, float)
@@ -137,7 +139,7 @@ def load_mesh(path, max_volume: float | None = None, min_ratio: float | None = N
             remap = -np.ones(len(V), np.int64)
             remap[used] = np.arange(len(used))
             V, T = V[used], remap[T]
-        return TetMesh(V, T)
+        return TetMesh(V, _orient(V, T))  # tools differ in their orientation convention
     raise ValueError(
         f"{path}: unsupported mesh format '{suffix}' (volume: {sorted(VOLUME_SUFFIXES)}, "
         f"surface: {sorted(SURFACE_SUFFIXES)})"
@@ -161,7 +163,7 @@ def _load_tetgen(stem: Path) -> TetMesh:
     el = rows(ele)
     m = int(el[0][0])
     tets = np.array([[int(v) for v in ln[1:5]] for ln in el[1 : m + 1]]) - first
-    return TetMesh(pts, tets)
+    return TetMesh(pts, _orient(pts, tets))
 
 
 def save_mesh(mesh: TetMesh, path, cell_data: dict | None = None) -> None:

@@ -1,0 +1,75 @@
+"""Valid inputs made by other tools than matlearn's own writers (found with
+bench/diagnosis_independent.py and its probes): they must load as the same body."""
+from __future__ import annotations
+
+import meshio
+import numpy as np
+import pytest
+
+from matlearn import meshes
+
+
+def _box():
+    V, T = meshes.grid_tets((3, 2, 1), (0.06, 0.04, 0.02))
+    return V, T
+
+
+def _flip(T, which):
+    T = T.copy()
+    T[which, 1], T[which, 2] = T[which, 2].copy(), T[which, 1].copy()
+    return T
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".msh"])
+@pytest.mark.parametrize("which", ["all", "half"])
+def test_volume_mesh_with_other_orientation_convention(tmp_path, suffix, which):
+    """A tet mesh whose tets are (all or some) negatively oriented is the same body: it loads,
+    with the reference rest volumes (it used to raise 'inverted tets')."""
+    V, T = _box()
+    sel = np.ones(len(T), bool) if which == "all" else (np.arange(len(T)) % 2 == 0)
+    path = tmp_path / f"m{suffix}"
+    kw = {"file_format": "gmsh22", "binary": False} if suffix == ".msh" else {}
+    meshio.write(path, meshio.Mesh(V, [("tetra", _flip(T, sel))]), **kw)
+    m = meshes.load_mesh(path)
+    ref = meshes.TetMesh(V, T)
+    assert m.num_tets == ref.num_tets
+    np.testing.assert_allclose(np.sort(m.rest_volumes), np.sort(ref.rest_volumes), rtol=1e-12)
+    assert np.all(np.asarray(m.rest_volumes) > 0)
+
+
+def test_tetgen_files_with_other_orientation(tmp_path):
+    V, T = _box()
+    T = _flip(T, np.ones(len(T), bool))
+    (tmp_path / "b.node").write_text(
+        f"{len(V)} 3 0 0\n" + "".join(f"{i + 1} {x} {y} {z}\n" for i, (x, y, z) in enumerate(V)))
+    (tmp_path / "b.ele").write_text(
+        f"{len(T)} 4 0\n" + "".join(f"{i + 1} " + " ".join(str(v + 1) for v in t) + "\n" for i, t in enumerate(T)))
+    m = meshes.load_mesh(tmp_path / "b.ele")
+    assert m.num_tets == len(T)
+    np.testing.assert_allclose(np.sum(m.rest_volumes), 0.06 * 0.04 * 0.02, rtol=1e-12)
+
+
+def test_gmsh_second_order_mesh_with_boundary_triangles(tmp_path):
+    """gmsh output: boundary triangles plus quadratic tets (tetra10). The corners make the body;
+    the mid-edge nodes, used by no linear tet, are dropped (it used to raise 'no tetrahedra')."""
+    V, T = _box()
+    edges = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [2, 3], [1, 3]])  # gmsh tetra10 edge order
+    key = {}
+    P = [*V]
+    T10 = np.zeros((len(T), 10), np.int64)
+    for e, t in enumerate(T):
+        T10[e, :4] = t
+        for j, (a, b) in enumerate(edges):
+            k = tuple(sorted((t[a], t[b])))
+            if k not in key:
+                key[k] = len(P)
+                P.append(0.5 * (V[k[0]] + V[k[1]]))
+            T10[e, 4 + j] = key[k]
+    F = meshes.TetMesh(V, T).surface_faces
+    path = tmp_path / "q.msh"
+    meshio.write(path, meshio.Mesh(np.array(P), [("triangle", np.asarray(F)), ("tetra10", T10)]),
+                 file_format="gmsh22", binary=False)
+    m = meshes.load_mesh(path)
+    assert m.num_vertices == len(V) and m.num_tets == len(T)
+    np.testing.assert_allclose(np.sort(m.vertices, axis=0), np.sort(V, axis=0))
+    np.testing.assert_allclose(np.sum(m.rest_volumes), 0.06 * 0.04 * 0.02, rtol=1e-12)
