@@ -43,6 +43,10 @@ NESTS = {
 }
 
 
+# per-recording start decision (problem.start_in_motion); False: every recording starts at rest
+START_DECISION = False
+
+
 def _printer(progress):
     t0 = time.time()
 
@@ -89,10 +93,19 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     np.random.seed(seed)
-    P = Problem(scene_path)
+    # a recording that does not say it starts at rest starts in motion only where its own data
+    # show it (problem.start_in_motion), decided once here for every recording
+    P = Problem(scene_path, estimate_velocity="auto" if START_DECISION else False)
     scene = P.scene
     nominal = scene.model()
     say(f"scene: {scene.mesh.num_tets} tets, {len(P.train)} train / {len(P.test)} test recordings")
+    for role, recs in (("train", P.train), ("test", P.test)) if P.estimate_velocity == "auto" else ():
+        for i, rec in enumerate(recs):
+            info = P.start_info(rec)
+            if "rss_moving" in info:
+                say(f"{role} recording {i}: starts {'in motion' if info['moving'] else 'at rest'} (best "
+                    f"uniform-stiffness rss from rest {info['rss_rest']:.3e}, moving {info['rss_moving']:.3e}, "
+                    f"noise {info['rss_noise']:.3e})")
 
     # ---- where
     got = [where.residual_field(P, nominal, rec, residual_source) for rec in P.train]
@@ -293,7 +306,8 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                 selected = polished
         elif significant:
             verdict = ["unexplained"]
-    hist = history.check(P, ctx, selected, rss_floor, say, add_factor=ADD_FACTOR, stateless=J) if above else None
+    hist = history.check(P, ctx, selected, rss_floor, say, add_factor=ADD_FACTOR, stateless=J,
+                         strains=history.damage_strains(fields)) if above else None
     if hist is not None and hist["detected"]:
         verdict = ["history_dependence"] + [v for v in verdict if v != "unexplained"]
     say(f"verdict {verdict}")
