@@ -46,29 +46,40 @@ RbfCorrection::RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bia
   if (!(eps_ > 0)) throw InvalidInput("RbfCorrection: epsilon must be > 0");
   if (!c_.allFinite() || !w_.allFinite() || !A_.allFinite() || !wa_.allFinite())
     throw InvalidInput("RbfCorrection: parameters contain NaN or Inf");
+  cc_ = c_;
+  wc_ = w_;
 }
 
 void RbfCorrection::element(const Vec3& s, Vec3& p, double& da, Mat3* J) const {
   const Vec3 sc = lo_.size() == 3 ? Vec3(s.cwiseMax(lo_).cwiseMin(hi_)) : s;
-  // Inside the box the extension term is an exact +0 (phi + (+-0) / phi == phi), so the values
-  // alone (J == nullptr) take phi there: bitwise the kernel values of the full evaluation.
-  const bool phi_only = J == nullptr && sc == s;
-  const bool damp = wa_.size() > 0;
+  // All centres at once on per-axis contiguous columns (Eigen packet sqrt and dot products).
+  // The values of the full and the values-only (J == nullptr) evaluation share every operation,
+  // so they are bitwise equal. Inside the box the extension term is not formed at all (it is
+  // an exact +0 there): the kernel is phi.
+  thread_local Eigen::ArrayXd d[3], phi, g, dd, gi;
+  for (int i = 0; i < 3; ++i) d[i] = sc[i] - cc_.col(i).array();
+  phi = (d[0].square() + d[1].square() + d[2].square() + eps_ * eps_).sqrt();
+  const bool inside = sc == s;
+  const Vec3 delta = s - sc;
+  if (!inside) {
+    dd = d[0] * delta[0] + d[1] * delta[1] + d[2] * delta[2];
+    g = phi + dd / phi;  // the extended kernel values
+  }
+  const Eigen::ArrayXd& kv = inside ? phi : g;
   p = A_ * (s - Vec3::Ones()) + b_;
-  da = a0_;
-  if (J) *J = A_;
-  Vec3 g;
-  double phi_c = 0;
-  for (int k = 0; k < c_.rows(); ++k) {
-    const Vec3 w = w_.row(k).transpose();
-    if (phi_only) {
-      phi_c = std::sqrt((sc - c_.row(k).transpose()).squaredNorm() + eps_ * eps_);
-      p += w * phi_c;
-    } else {
-      p += w * extended_kernel(s, sc, c_.row(k).transpose(), eps_, J ? &g : nullptr, &phi_c);
-      if (J) *J += w * g.transpose();
+  for (int j = 0; j < 3; ++j) p[j] += wc_.col(j).dot(kv.matrix());
+  da = a0_ + (wa_.size() > 0 ? wa_.dot(phi.matrix()) : 0.0);
+  if (J) {
+    *J = A_;
+    for (int i = 0; i < 3; ++i) {
+      // d g_k / d s_i: d_i / phi inside the box and along the axes where s is clamped, and
+      // d_i / phi (1 - dd / phi^2) along the others (extended_kernel)
+      if (inside || delta[i] != 0.0)
+        gi = d[i] / phi;
+      else
+        gi = d[i] / phi * (1.0 - dd / phi.square());
+      for (int j = 0; j < 3; ++j) (*J)(j, i) += wc_.col(j).dot(gi.matrix());
     }
-    if (damp) da += wa_[k] * phi_c;
   }
   if (width_ > 0) isotropic_blend(s, width_, p, J, nullptr);
 }
