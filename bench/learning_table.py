@@ -39,7 +39,7 @@ RESULTS = Path(__file__).parent / "results" / "learning_table.json"
 
 
 def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str, start_evals: int,
-             start_pose: str = "held") -> dict:
+             start_pose: str = "held", extra: dict | None = None) -> dict:
     path = cases.build(spec, work / "cases")
     scene = load_scene(path)
     test_recs = scene.recordings_with_role("test")
@@ -67,7 +67,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
     t0 = time.time()
     # the extrapolation (linear part, RBF edge slope) both free and penalised (fit.EXTRAPOLATION_WEIGHTS)
     opts = LearnOptions(iterations=iterations, **{"extrapolation": EXTRAPOLATION_WEIGHTS, "start_pose": start_pose,
-                                                  **spec.learn})
+                                                  **spec.learn, **(extra or {})})
     run_dir = work / "runs" / spec.name
     if run_dir.exists():
         shutil.rmtree(run_dir)
@@ -101,7 +101,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
                                 "alpha_mass": fit["damping"].alpha_mass,
                                 "alpha_stiffness": fit["damping"].alpha_stiffness,
                                 "evaluations": fit["evaluations"], "wall_s": base_wall},
-        "start": start, "train_start_pose": start_pose, "score_start": SCORE_START, "start_parameters": {k: sinfo.get(k) for k in ("material", "damping", "evaluations", "train_rms_pct_by_law")},
+        "start": start, "train_start_pose": start_pose, "learn_options_override": extra or {}, "score_start": SCORE_START, "start_parameters": {k: sinfo.get(k) for k in ("material", "damping", "evaluations", "train_rms_pct_by_law")},
         **({"start_chosen": sinfo["chosen"], "learned_train_max_error_pct_by_start": sinfo["train_max_error_pct"],
             "test_max_error_pct_by_start": sinfo["test_per_recording_max_pct"]} if start == "best" else {}),
         "start_train_max_error_pct": res["nominal"]["train"]["max_error_pct"],
@@ -192,6 +192,8 @@ def main():
     ap.add_argument("--start-pose", choices=STARTS, default="held",
                     help="initial poses of the TRAIN recordings while learning (LearnOptions.start_pose); "
                          "every model is scored on the test recordings with replay.SCORE_START")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=JSON",
+                    help="a LearnOptions field overriding the default (experiments; rows record it)")
     ap.add_argument("--work", default="/tmp/matlearn_learning_bench")
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--merge", nargs="+", default=None,
@@ -200,6 +202,7 @@ def main():
     if args.merge:
         return merge(args.merge, Path(args.out))
     names = [args.only] if args.only else args.cases.split(",")
+    extra = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.option)}
     byname = {f.__name__: f for f in cases.ALL}
     out = Path(args.out)
     doc = {"cases": [], "notes": (
@@ -264,7 +267,7 @@ def main():
     for name in names:
         print(f"== {name}", flush=True)
         row = run_case(byname[name](), work, args.iterations, args.baseline_evals, args.start,
-                       args.start_evals, args.start_pose)
+                       args.start_evals, args.start_pose, extra)
         row.update({k: doc[k] for k in ("code_commit", "loop_commit", "uncommitted_changes")})
         doc["cases"] = [c for c in doc["cases"] if c["case"] != name] + [row]
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -124,7 +124,9 @@ class LearnOptions:
     up to ~6 forward checks; on the 6k-tet bar of bench/learning_scale.py it gained 0.1 %
     relative train error); start_pose: how the TRAIN recordings' initial poses are estimated
     (replay.initial_state `start`: "held", the default, or "released"); the test recordings
-    are always scored with replay.SCORE_START, the protocol every model is scored with."""
+    are always scored with replay.SCORE_START, the protocol every model is scored with;
+    symmetric: fit the permutation-equivariant RBF, isotropic by construction (fit.py module
+    docstring, "Symmetric fit"; False: the free fit of sessions 1-8, not isotropic)."""
 
     iterations: int = 8
     lam: float | None = None
@@ -150,6 +152,7 @@ class LearnOptions:
     jacobian_every: int = 1
     retry_rejected: bool = True
     start_pose: str = "held"
+    symmetric: bool = True
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
@@ -588,7 +591,8 @@ class Learner:
         # the normal equations do not depend on the weights: assembled once for all candidates
         system = fit_system(self.nominal, frames, opt.centers,
                             current_model=current_model if params is not None else None,
-                            damping=opt.damping, seed=opt.seed + k, centers=centers)
+                            damping=opt.damping, seed=opt.seed + k, centers=centers,
+                            symmetric=opt.symmetric)
         # (ridge, smoothing, (linear, edge) extrapolation penalties), in the order of the options
         pairs = [(r, s, x) for x in opt.extrapolation for s in opt.smoothing for r in opt.ridges]
         planned = len(pairs)
