@@ -20,10 +20,33 @@ def register(subparsers):
     p.set_defaults(func=_run)
 
 
+def scene_with_markers(scene_path, out_dir, log=None):
+    """The scene to diagnose: `scene_path` itself, or, when some of its recordings have point
+    clouds and no markers (formats.md allows cloud-only recordings; the diagnosis compares
+    markers), a copy written to out_dir/tracked/scene.toml whose cloud-only recordings are
+    replaced by the mesh tracked through their clouds, as `matlearn learn` does
+    (clouds.prepare.track_scene; cached there by fingerprint)."""
+    from pathlib import Path
+
+    from ..clouds.prepare import is_cloud_only, track_scene
+    from ..recording import load_recording
+    from ..scene import load_scene, save_scene
+
+    scene = load_scene(scene_path)
+    if not any(is_cloud_only(load_recording(p)) for p, _ in scene.recordings):
+        return Path(scene_path)
+    tracked, _ = track_scene(scene, Path(out_dir) / "tracked", log=log, progress=log is not None)
+    return save_scene(tracked, Path(out_dir) / "tracked" / "scene.toml")
+
+
 def _run(args):
+    import sys
+
     from ..diagnosis import diagnose
 
-    r = diagnose(args.scene, args.out, seed=args.seed, report=not args.no_report,
+    log = lambda *a: print(*a, file=sys.stderr, flush=True)  # noqa: E731
+    scene = scene_with_markers(args.scene, args.out, log)
+    r = diagnose(scene, args.out, seed=args.seed, report=not args.no_report,
                  residual_source=args.residual)
     print(f"verdict: {', '.join(r['verdict']) or '[] (within noise and discretisation)'}")
     return 0
