@@ -13,6 +13,16 @@ stiffness refit (the stateless reference). Then let the material change with the
   displacement patterns (a permanent set shifts the equilibrium a recording oscillates about),
   where the stateless models share one (their static error is the same in every recording).
   Used only when every recording spans OFFSET_PERIODS periods of the dominant oscillation.
+* in the order strains were reached (the damage model, `_damage_fit`, when `DAMAGE` is on and
+  the `where` step's strains are given): every element softened in proportion to the largest
+  strain it has reached so far (a running maximum over the recordings in their order and over
+  time, piecewise constant over DAMAGE_SEGMENTS segments per recording), one parameter. A virgin
+  body's first loading is stiffer than everything after it although it is the largest motion,
+  the opposite of any amplitude-dependent stiffness. Its stateless twin is the same pattern fixed
+  at what all the recordings reached (mesh error and heterogeneity concentrate where strain
+  does). Detected (`decide_damage`) when it softens, explains at least half of the reference's
+  residual above the floor, is preferred by the score, its twin gains at most half as much, and
+  no stateless rival fits as well or scores better.
 History dependence is detected (`decide`) when this history model
 1. cuts (rss + floor) of the stateless reference by the factor a further effect must reach,
 2. is preferred by the score (BIC: it pays for its K + 1 parameters), and
@@ -88,17 +98,25 @@ def _residual(problem, ctx, params, x, recs, only=None, base=None):
 def _simulate_split(problem, m1, m2, rec):
     if m2 is m1:
         return problem.predict(m1, rec)
+    n = len(replay.simulation_times(problem.scene, rec))
+    return _simulate_segments(problem, [m1, m2], [0, n // 2, n - 1], rec)
+
+
+def _simulate_segments(problem, models, bounds, rec):
+    """Markers at rec.times of one recording simulated with models[i] over the simulation steps
+    bounds[i] .. bounds[i + 1] (the state carried across), from the first model's initial state."""
     scene = problem.scene
     emb = problem.embedding(rec)
     sim_t = replay.simulation_times(scene, rec)
-    half = len(sim_t) // 2
-    x0, v0 = replay.initial_state(scene, m1, rec, emb)
+    x0, v0 = replay.initial_state(scene, models[0], rec, emb)
     didx, dtar = replay.drive_vertices(scene, rec)
-    Xs, Vs = [], []
+    Xs = []
     state = (np.asarray(x0), np.asarray(v0))
-    for model, a, b in ((m1, 0, half), (m2, half, len(sim_t) - 1)):
+    zero = np.zeros((scene.mesh.num_vertices, 3))
+    for model, a, b in zip(models, bounds[:-1], bounds[1:]):
+        if b <= a:
+            continue
         integ = scene.integrator(model, max_newton=problem.fast_newton)
-        zero = np.zeros((scene.mesh.num_vertices, 3))
         if len(didx):
             integ.set_prescribed(didx)
             integ.set_state(*state)
@@ -109,7 +127,6 @@ def _simulate_split(problem, m1, m2, rec):
             X, V = integ.simulate(b - a, zero, 1)
         problem.simulations += 1
         Xs.append(X if a == 0 else X[1:])
-        Vs.append(V if a == 0 else V[1:])
         state = (np.asarray(X[-1]), np.asarray(V[-1]))
     X = np.concatenate(Xs)
     return replay.interpolate_frames(sim_t, emb.apply(X), rec.times)
@@ -248,6 +265,96 @@ def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, st
     return best
 
 
+DAMAGE = False  # the damage model in `check` (experiment, off until measured on the suites)
+DAMAGE_SEGMENTS = 6  # piecewise-constant damage over this many equal time segments per recording
+
+
+def damage_strains(fields) -> list:
+    """Per train recording (sampled times, (F, m) largest principal strain magnitude |s - 1| of
+    every element): the strain of the nominal model following the markers (the `where` step's
+    residual fields, one per train recording, in order)."""
+    return [(np.asarray(f.times, float), np.abs(np.asarray(f.Fh, float) - 1.0).max(axis=2)) for f in fields]
+
+
+def _damage_schedule(problem, recs, strains, segments=DAMAGE_SEGMENTS):
+    """Per recording (simulation-step bounds of `segments` equal segments, [D per segment]): D
+    the largest strain each element has reached so far, over the recordings in their order and
+    over time (a running maximum of `strains`), taken at each segment's start (a virgin body's
+    first loading is undamaged); and the final D (what all the recordings reached)."""
+    out, prev = [], None
+    for rec, (ft, s) in zip(recs, strains):
+        run = np.maximum.accumulate(np.asarray(s, float), axis=0)
+        if prev is not None:
+            run = np.maximum(run, prev[None])
+        sim_t = replay.simulation_times(problem.scene, rec)
+        bounds = np.linspace(0, len(sim_t) - 1, segments + 1).astype(int)
+        Ds = []
+        for a in bounds[:-1]:
+            i = int(np.searchsorted(ft, sim_t[a], side="right")) - 1
+            Ds.append(run[i] if i >= 0 else (prev if prev is not None else np.zeros(run.shape[1])))
+        prev = run[-1]
+        out.append((bounds, Ds))
+    return out, prev
+
+
+def _damage_residual(problem, ctx, params, shift, c, bounds, Ds, rec):
+    """Residual of one recording simulated with every element's log stiffness lowered by
+    c D_e / d_ref in each segment (D per segment), the uniform stiffness shifted by `shift`."""
+    from dataclasses import replace
+
+    from ..materials import Material
+
+    mat = ctx.material
+    E = np.broadcast_to(np.asarray(mat.youngs_modulus, float), (ctx.mesh.num_tets,))
+    p = dict(params)
+    p["stiffness_scale"] = [float(np.asarray(params.get("stiffness_scale", [0.0]), float)[0]) + shift]
+    models = []
+    for D in Ds:
+        e = E * np.exp(np.clip(c * np.asarray(D) / ctx.d_ref, -3, 3))
+        models.append(build_model(replace(ctx, material=Material(mat.model, e, mat.poisson_ratio, mat.density,
+                                                                   list(mat.edits))), p))
+
+    def predict(rec):
+        return _simulate_segments(problem, models, bounds, rec) + rest_offset(problem, rec)[None]
+
+    return debias(problem, stack_residuals([rec], predict, problem.object_size), [rec])
+
+
+def _damage_fit(problem, ctx, params, recs, strains, s0, proj, iterations=4):
+    """A damage model: every element softened in proportion to the largest strain it has seen so
+    far (running maximum over the recordings in their order and over time), one parameter c
+    (log stiffness per d_ref of strain) with the shared stiffness; and its stateless twin: the
+    same pattern fixed at what all recordings reached (a stiffness field a function of the state
+    can have: mesh error and heterogeneity concentrate where strain does). Returns ((rss, c),
+    (twin rss, twin c))."""
+    sched, final = _damage_schedule(problem, recs, strains)
+    out = []
+    for stateless in (False, True):
+        def fun(x, only, base, stateless=stateless):
+            parts = []
+            for rec, (bounds, Ds) in zip(recs, sched):
+                Ds = [final] * len(Ds) if stateless else Ds
+                parts.append(_damage_residual(problem, ctx, params, x[0], x[1], bounds, Ds, rec))
+            return proj(parts)
+        x, _, cost = _lm(fun, np.array([s0, 0.0]), [0, 1], 1, iterations)
+        out.append((cost, float(x[1])))
+    return out[0], out[1]
+
+
+def decide_damage(ref, dmg, twin, c, n, dof, rss_floor, explained=0.5):
+    """The damage model's own criteria: it softens (c < 0: damage, Mullins softening; a stateless
+    amplitude dependence acts in the opposite order in time, the largest, first swing most
+    affected), explains at least `explained` of the reference's residual above the floor, is
+    preferred by the score over the reference, and at least half of its gain comes from the
+    order in which the strains were reached (its stateless twin, the same pattern fixed,
+    gains at most half as much)."""
+    from .fitting import score
+
+    return bool(c < 0 and ref - dmg >= explained * (ref - rss_floor)
+                and score(dmg, dof + 1, n, rss_floor) < score(ref, dof, n, rss_floor)
+                and twin - dmg >= 0.5 * (ref - dmg))
+
+
 def decide(ref, cost, alternatives, n, dof, K, rss_floor, add_factor=0.6, extra=None):
     """The decision on fitted residuals: `ref` the stateless reference's rss (dof parameters),
     `cost` the history model's (dof + extra, default K + 1), `alternatives` {family: (rss,
@@ -271,14 +378,15 @@ def decide(ref, cost, alternatives, n, dof, K, rss_floor, add_factor=0.6, extra=
     return bool(ok), best
 
 
-def check(problem, ctx, selected, rss_floor, say=None, add_factor=0.6, stateless=None, rivals=2):
+def check(problem, ctx, selected, rss_floor, say=None, add_factor=0.6, stateless=None, rivals=2, strains=None):
     """{"detected", "explained", "score", "parameters", "reference"}; see the module docstring.
     reference: the stateless reference's parameters (the best the library's stateless families
     do, with the uniform stiffness refit).
     stateless: {family: (N, k) sensitivities of the train residual} of the library's families
     (criterion 3: those whose linearised gain on the reference residual reaches the history
     model's gain are candidates; the `rivals` best of them are refitted by simulation; skipped
-    when None)."""
+    when None).
+    strains: `damage_strains` of the train recordings, for the damage model (skipped when None)."""
     from .fitting import score
 
     params = dict(selected.params) if selected is not None else {}
@@ -318,7 +426,14 @@ def check(problem, ctx, selected, rss_floor, say=None, add_factor=0.6, stateless
     # either way for damping or nonlinearity families); only needed when the history model
     # passes the other criteria
     passes = decide(ref, cost, {}, n, dof, K, rss_floor, add_factor, extra)[0]
-    cands = sorted(lin, key=lambda nm: lin[nm][1])[:rivals] if passes else []
+    # the damage model (a softening that follows the largest strain reached so far), against its
+    # own stateless twin; it needs the same stateless rivals
+    dmg = c_dmg = twin = None
+    damaged = False
+    if DAMAGE and strains is not None and len(strains) == K:
+        (dmg, c_dmg), (twin, _) = _damage_fit(problem, ctx, params, recs, strains, x_ref[0], shared)
+        damaged = decide_damage(ref, dmg, twin, c_dmg, n, dof, rss_floor)
+    cands = sorted(lin, key=lambda nm: lin[nm][1])[:rivals] if passes or damaged else []
     # a missed viscous damping grows the residual with time, which the late-half damping shift
     # mimics: the library's damping family is always a rival when that shift is used
     if passes and "rayleigh_damping" in lin and "rayleigh_damping" not in cands and abs(x_h[K + 1]) > 0.1:
@@ -326,22 +441,34 @@ def check(problem, ctx, selected, rss_floor, say=None, add_factor=0.6, stateless
     alternatives = {}
     for name in cands:
         k = len(lin[name][0]) + (1 if name == "heterogeneity" else 0)
-        alternatives[name] = (_stateless(problem, ctx, params, x_ref, recs, name, lin[name][0], stop=cost,
+        stop = min(cost if passes else np.inf, dmg if damaged else np.inf)
+        alternatives[name] = (_stateless(problem, ctx, params, x_ref, recs, name, lin[name][0], stop=stop,
                                          proj=shared), k)
     detected, best_name = decide(ref, cost, alternatives, n, dof, K, rss_floor, add_factor, extra)
     s_hist = score(cost, dof + extra, n, rss_floor)
+    if damaged:  # a stateless rival that fits as well or scores better is a function of the state
+        s_dmg = score(dmg, dof + 1, n, rss_floor)
+        damaged = all(rss > dmg and score(rss, dof + k, n, rss_floor) > s_dmg
+                      for rss, k in alternatives.values())
+        if damaged and (not detected or s_dmg < s_hist):
+            detected, gain, s_hist = True, ref - dmg, s_dmg
     if say:
         alt = ", ".join(f"{nm} {v[0]:.3e} (linearised {lin[nm][1]:.3e})" for nm, v in alternatives.items())
-        say(f"history check: stateless rss {ref:.3e} -> {cost:.3e} with history parameters {np.round(x_h, 3)};"
+        dm = "" if dmg is None else (f"; damage model rss {dmg:.3e} (log stiffness {c_dmg:.3f} per d_ref of the"
+                                     f" largest strain reached), its stateless twin {twin:.3e}")
+        say(f"history check: stateless rss {ref:.3e} -> {cost:.3e} with history parameters {np.round(x_h, 3)}{dm};"
             f" stateless rivals by simulation: {alt or 'not needed'}; detected {detected}")
     reference = dict(params)
     reference["stiffness_scale"] = [float(np.asarray(params.get("stiffness_scale", [0.0]), float)[0] + x_ref[0])]
+    parameters = {"recording_stiffness_scales": [float(np.exp(v)) for v in x_h[1:K]],
+                  "late_stiffness_scale": float(np.exp(x_h[K])),
+                  "late_alpha_stiffness_shift": float(x_h[K + 1] * 0.1 / ctx.omega)}
+    if c_dmg is not None:
+        parameters["damage_log_stiffness_per_strain"] = float(c_dmg / ctx.d_ref)
     return {
         "detected": bool(detected),
         "reference": reference,
         "explained": float(np.clip(gain / max(ref, 1e-300), 0, 1)),
         "score": s_hist,
-        "parameters": {"recording_stiffness_scales": [float(np.exp(v)) for v in x_h[1:K]],
-                       "late_stiffness_scale": float(np.exp(x_h[K])),
-                       "late_alpha_stiffness_shift": float(x_h[K + 1] * 0.1 / ctx.omega)},
+        "parameters": parameters,
     }
