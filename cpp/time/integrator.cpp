@@ -252,7 +252,10 @@ void Integrator::static_solve(const MatX3& f_ext, int load_steps, int max_iterat
       if (dof_map_[d] >= 0) xd[d] += t * dx[dof_map_[d]];
     return xt;
   };
-  const double ref = fload.norm() + 1e-12;
+  // The residual is measured against the load, but never against less than the body's weight
+  // under standard gravity: with no load (zero gravity, a pose held by prescribed vertices
+  // alone) the reference was 1e-12 N and nothing but round-off could pass.
+  const double ref = std::max(fload.norm(), 9.81 * mass.norm()) + 1e-12;
   const double dx_floor = 1e-14 * size_ * std::sqrt(double(n_free_));
   static_timings_ = StepTimings{};
   bool factored = false;  // solver_ holds a tangent of this solve (chord steps may reuse it)
