@@ -340,7 +340,7 @@ def build_case(work: Path, name: str, effects: list, shape_kind: str, seed: int)
         elif eff == "support_compliance":
             truth, is_pad, clamp_t = add_pad(shape)
             E_t = np.full(truth.num_tets, E0)
-            f = float(np.exp(rng.uniform(np.log(0.03), np.log(0.12))))
+            f = float(np.exp(rng.uniform(np.log(0.15), np.log(0.4))))  # 0.03-0.12 moved the tip by ~70 % of the size
             E_t[is_pad] *= f
             exclude_x = 0.0
             info["params"].update(pad_factor=f, pad_thickness=shape["grid"][1])
@@ -567,8 +567,9 @@ def main(argv=None):
         if "verdict" in r and not r["top1_correct"]:
             misses[r["case"]] = (f"truth {r['true_effects']} {r['params']}, verdict {r['verdict']}, ranking "
                                  f"{r['ranking']}; the effect moves the test markers by {r.get('effect_pct') or 0:.2f} % "
-                                 f"of the size, the control's nominal gap (discretisation + noise) is "
-                                 f"{ctrl_gap or 0:.2f} %, marker noise {r['noise_mm']:.2f} mm")
+                                 f"of the size; the case's nominal gap (effect + discretisation + noise) is "
+                                 f"{r['gap_before_pct']:.2f} %, the control's (another shape) {ctrl_gap or 0:.2f} %; "
+                                 f"marker noise {r['noise_mm']:.2f} mm")
         elif "error" in r:
             misses[r["case"]] = f"error: {r['error'][-300:]}"
     res = {"notes": {"commit": _commit(), "seed": args.seed,
