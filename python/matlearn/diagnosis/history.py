@@ -265,7 +265,7 @@ def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, st
     return best
 
 
-DAMAGE = False  # the damage model in `check` (experiment, off until measured on the suites)
+DAMAGE = True  # the damage model in `check` (off: the first path alone, as until session 9)
 DAMAGE_SEGMENTS = 6  # piecewise-constant damage over this many equal time segments per recording
 
 
