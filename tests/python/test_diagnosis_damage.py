@@ -121,3 +121,16 @@ def test_decide_damage():
     assert not history.decide_damage(0.05, 0.025, 0.05, 0.1, n, dof, floor)  # stiffening: not damage
     assert not history.decide_damage(0.05, 0.035, 0.05, -0.1, n, dof, floor)  # explains < half the excess
     assert not history.decide_damage(0.05, 0.025, 0.035, -0.1, n, dof, floor)  # its twin gains > half
+
+
+def test_families_after_history_keep_their_parameters_in_the_gap():
+    # a verdict led by history_dependence (outside the library): the tension nonlinearity's
+    # cumulative held-out gap must use its own fitted parameters (it was computed without them)
+    from matlearn.diagnosis import pipeline
+
+    params = {"tension_nonlinearity": [0.3], pipeline.NUISANCE: [0.1], "stiffness_scale": [0.2]}
+    got = pipeline._cumulative_params(["history_dependence", "tension_nonlinearity"], params)
+    assert got == {"tension_nonlinearity": {"tension_nonlinearity": [0.3], pipeline.NUISANCE: [0.1]}}
+    got = pipeline._cumulative_params(["stiffness_scale", "tension_nonlinearity"], params)
+    assert got["stiffness_scale"] == {"stiffness_scale": [0.2], pipeline.NUISANCE: [0.1]}
+    assert got["tension_nonlinearity"] == params

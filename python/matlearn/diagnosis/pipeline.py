@@ -315,9 +315,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # ---- how much: held-out gaps
     gap_before = _safe_gap(P, None, None, model=nominal)  # None: the nominal model fails there
     cumulative = {}
-    for i, name in enumerate(v for v in verdict if v in FAMILIES):
-        params = {n: selected.params[n] for n in verdict[: i + 1] + [NUISANCE]
-                  if n in selected.params} if selected else {}
+    for name, params in _cumulative_params(verdict, selected.params if selected else {}).items():
         cumulative[name] = _safe_gap(P, ctx, params)
     effects = []
     for e in ranked:
@@ -377,6 +375,15 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         rep.write_report(out, P, ctx, result, shares, field, fits, selected, patch_theta, labels)
     say(f"wrote {out / 'diagnosis.json'} ({P.simulations} simulations)")
     return result
+
+
+def _cumulative_params(verdict, params) -> dict:
+    """{family: the fitted parameters of the verdict's library families up to and including it
+    (with the discretisation offset)}, in verdict order; "history_dependence" (outside the
+    library, it may lead the verdict) is skipped, not counted as a family."""
+    fams = [v for v in verdict if v in FAMILIES]
+    return {name: {n: params[n] for n in fams[: i + 1] + [NUISANCE] if n in params}
+            for i, name in enumerate(fams)}
 
 
 def _safe_gap(P, ctx, params, fast=False, model=None):
