@@ -534,6 +534,7 @@ def main(argv=None):
     ap.add_argument("--work", type=Path)
     args = ap.parse_args(argv)
     work = args.work or ROOT / "work" / f"independent_{args.seed}"
+    commit = _commit()  # the code the diagnoses run on (taken at the start)
     rows, not_run = [], []
     print(f"{'case':16s} {'shape':10s} {'true':32s} {'verdict':34s} top1 strict  before  after effect  wall   cpu")
     for i, (name, effects, shape_kind) in enumerate(CASES):
@@ -572,7 +573,8 @@ def main(argv=None):
                                  f"marker noise {r['noise_mm']:.2f} mm")
         elif "error" in r:
             misses[r["case"]] = f"error: {r['error'][-300:]}"
-    res = {"notes": {"commit": _commit(), "seed": args.seed,
+    res = {"notes": {"commit": commit if not args.collect else f"rows cached by earlier runs; HEAD {commit}",
+                     "seed": args.seed,
                      "what": "independent validation suite of `matlearn diagnose` (bench/diagnosis_independent.py): "
                              "own shapes, truths, motions and file writers, public formats only; held out, never "
                              "tuned on",
