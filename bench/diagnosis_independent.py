@@ -472,6 +472,7 @@ def run_case(work: Path, name: str, effects, shape_kind, seed, fresh: bool, time
     if build_only:
         return row
     out = case / "diag"
+    row["commit"] = _commit()
     cmd = [sys.executable, "-m", "matlearn", "diagnose", str(case / "scene.toml"), "--out", str(out)]
     t1, c1 = time.time(), resource.getrusage(resource.RUSAGE_CHILDREN)
     try:
