@@ -77,7 +77,8 @@ permutations P_j r_k with tied weights P_j v_k, the linear part is alpha I + bet
 damping weight is one per orbit (symmetric_expansion; 3c + 2 (+ c + 1) unknowns for 6c centres),
 and the box is the same on every axis (a permutation of a clamped point is the clamped
 permutation). Then dPh(Q s) = Q dPh(s) and dalpha(Q s) = dalpha(s) exactly (to round-off,
-tests/python/test_fit_symmetric.py), and the blend of RBF_ISOTROPIC_WIDTH is not needed. The
+tests/python/test_fit_symmetric.py), and the blend of RBF_ISOTROPIC_WIDTH is not needed (the
+re-learned sphere_compression: 43/38 steps at the limit, 25/41 factorisations). The
 normal equations are assembled for the 6c centres and reduced, T^T N T. Cost: 6x the kernels per
 element in every force evaluation (cpp/correction evaluates them as vectorised columns).
 """
