@@ -12,3 +12,14 @@ def test_control_case_claims_no_effect(tmp_path):
     # the raw gap is not zero (coarse mesh), it is within the estimated floor
     assert result["gap_before"]["max_error_pct"] > 0
     assert result["floor"]["rss_train"] < 2.5 * result["floor"]["rss_floor"]
+
+
+def test_truth_on_the_model_mesh_claims_no_effect(tmp_path):
+    """Recordings the nominal model on its own mesh matches within the noise hold no gap: the
+    discretisation correction (which assumes a finer truth) must not invent a stiffness effect."""
+    scene = tiny_case(tmp_path, "same_mesh", E_scale=1.0, seed=3, refine=1, noise=3e-5)
+    result = diagnose(scene, tmp_path / "out", progress=lambda m: None, **FAST)
+    floor = result["floor"]
+    assert floor["rss_nominal_raw"] < 1.5 * floor["rss_noise"]
+    assert floor["rss_train"] > 10 * floor["rss_floor"]  # the corrected baseline alone would claim
+    assert result["verdict"] == []
