@@ -168,6 +168,9 @@ def main(argv=None) -> int:
     ap.add_argument("--penalised-family", action="store_true",
                     help="extrapolation candidates fit.EXTRAPOLATION_WEIGHTS (as the learn CLI) instead of "
                          "the library default (free family only)")
+    ap.add_argument("--free-fit", action="store_true",
+                    help="the unconstrained RBF fit (LearnOptions.symmetric=False) instead of the default "
+                         "symmetric one; its summary is added to the existing JSON as free_fit_run")
     ap.add_argument("--work", default="/tmp/matlearn_learning_scale")
     ap.add_argument("--stride-check", action="store_true",
                     help="only compare iteration 0's space-time solve at tangent stride 1 and "
@@ -188,7 +191,7 @@ def main(argv=None) -> int:
     opt = LearnOptions(iterations=args.iterations, ridge_search=args.ridge_search,
                        tangent_stride=args.tangent_stride, jacobian_every=args.jacobian_every,
                        gn_tolerance=args.gn_tolerance, retry_rejected=args.retry_rejected,
-                       early_stop=not args.no_early_stop,
+                       early_stop=not args.no_early_stop, symmetric=not args.free_fit,
                        **({"extrapolation": EXTRAPOLATION_WEIGHTS} if args.penalised_family else {}))
     run = work / f"run_{sc.mesh.num_tets}"
     shutil.rmtree(run, ignore_errors=True)
@@ -247,8 +250,16 @@ def main(argv=None) -> int:
            "case_build_s": case_s, "load_avg_1min_start": load0, "load_avg_1min_end": load1,
            "cpus": os.cpu_count(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
            "commit": code}
+    doc["options"]["symmetric"] = opt.symmetric
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(doc, indent=1, default=float))
+    if args.free_fit:  # a comparison run: its summary beside the default run's record
+        main_doc = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+        main_doc["free_fit_run"] = {k: doc[k] for k in (
+            "wall_s", "cpu", "iterations_run", "best_iteration", "final_train_max_error_pct", "stop",
+            "options", "load_avg_1min_start", "load_avg_1min_end", "commit")}
+        RESULTS.write_text(json.dumps(main_doc, indent=1, default=float))
+    else:
+        RESULTS.write_text(json.dumps(doc, indent=1, default=float))
     print(f"\n{doc['tets']} tets, {doc['steps']} steps of {sc.time_step:g} s, {doc['markers']} markers "
           f"(load {load0:.1f} -> {load1:.1f} on {doc['cpus']} cpus)")
     print(f"{'stage':<15} {'wall s':>8} {'calls':>6} {'x fwd sim':>10} {'cpu s':>8} {'x fwd cpu':>10}")
