@@ -31,12 +31,11 @@ def _frames(sc, model, steps=150):
     return X[1::3], Vel[1::3]
 
 
-def test_rbf_fit_reproduces_analytic_stress_correction_from_exact_forces():
-    # Truth = nominal co-rotated + an analytic principal-stress correction dP_i = a (s_i - 1)^2
-    # (zero at rest); the "control forces" are the exact force differences.
-    a = 2e6
-    nominal_sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
-    nominal = nominal_sc.model()
+def analytic_forces(a):
+    """Truth = nominal co-rotated + an analytic principal-stress correction dP_i = a (s_i - 1)^2
+    (zero at rest): (scene, nominal model, X, Vel, exact control forces = force differences)."""
+    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
+    nominal = sc.model()
 
     def analytic(Fh, Fhdot):
         Fh = np.asarray(Fh)
@@ -44,9 +43,15 @@ def test_rbf_fit_reproduces_analytic_stress_correction_from_exact_forces():
         J[:, [0, 1, 2], [0, 1, 2]] = 2 * a * (Fh - 1)
         return a * (Fh - 1) ** 2, J, None, None
 
-    truth = nominal_sc.model(_core.correction.PythonCorrection(analytic))
-    X, Vel = _frames(nominal_sc, truth)
+    truth = sc.model(_core.correction.PythonCorrection(analytic))
+    X, Vel = _frames(sc, truth)
     fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    return sc, nominal, X, Vel, fc
+
+
+def test_rbf_fit_reproduces_analytic_stress_correction_from_exact_forces():
+    a = 2e6
+    nominal_sc, nominal, X, Vel, fc = analytic_forces(a)
     frames = FitFrames(X, Vel, fc, phi=None, constrained=nominal_sc.fixed)
     params, info = fit_correction(nominal, [frames], num_centers=24, damping=False, ridge=1e-10)
     Fh = np.concatenate([np.asarray(nominal.principal_kinematics(x, v)[0]) for x, v in zip(X, Vel)])

@@ -5,11 +5,9 @@ import itertools
 import numpy as np
 import pytest
 
-from matlearn import _core
 from matlearn.learning.fit import FitFrames, fit_correction, fit_system, solve_fit
-from matlearn.materials import Material
 
-from test_fit import _frames, _scene
+from test_fit import analytic_forces
 
 A_COEF = 2e6
 
@@ -17,19 +15,8 @@ A_COEF = 2e6
 @pytest.fixture(scope="module")
 def analytic_case():
     """Exact control forces of an isotropic analytic correction dP_i = a (s_i - 1)^2 on top of the
-    nominal co-rotated law (as test_fit's analytic test)."""
-    sc = _scene(Material("corotated", 3e5, 0.3, 1000.0))
-    nominal = sc.model()
-
-    def analytic(Fh, Fhdot):
-        Fh = np.asarray(Fh)
-        J = np.zeros((len(Fh), 3, 3))
-        J[:, [0, 1, 2], [0, 1, 2]] = 2 * A_COEF * (Fh - 1)
-        return A_COEF * (Fh - 1) ** 2, J, None, None
-
-    truth = sc.model(_core.correction.PythonCorrection(analytic))
-    X, Vel = _frames(sc, truth)
-    fc = np.stack([np.asarray(truth.forces(x, v)) - np.asarray(nominal.forces(x, v)) for x, v in zip(X, Vel)])
+    nominal co-rotated law (test_fit.analytic_forces)."""
+    sc, nominal, X, Vel, fc = analytic_forces(A_COEF)
     return sc, nominal, [FitFrames(X, Vel, fc, None, sc.fixed)], X, Vel
 
 
