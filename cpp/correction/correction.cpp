@@ -46,8 +46,6 @@ RbfCorrection::RbfCorrection(MatX3 centers, MatX3 weights, Mat3 linear, Vec3 bia
   if (!(eps_ > 0)) throw InvalidInput("RbfCorrection: epsilon must be > 0");
   if (!c_.allFinite() || !w_.allFinite() || !A_.allFinite() || !wa_.allFinite())
     throw InvalidInput("RbfCorrection: parameters contain NaN or Inf");
-  cc_ = c_;
-  wc_ = w_;
 }
 
 void RbfCorrection::element(const Vec3& s, Vec3& p, double& da, Mat3* J) const {
@@ -57,7 +55,7 @@ void RbfCorrection::element(const Vec3& s, Vec3& p, double& da, Mat3* J) const {
   // so they are bitwise equal. Inside the box the extension term is not formed at all (it is
   // an exact +0 there): the kernel is phi.
   thread_local Eigen::ArrayXd d[3], phi, g, dd, gi;
-  for (int i = 0; i < 3; ++i) d[i] = sc[i] - cc_.col(i).array();
+  for (int i = 0; i < 3; ++i) d[i] = sc[i] - c_.col(i).array();
   phi = (d[0].square() + d[1].square() + d[2].square() + eps_ * eps_).sqrt();
   const bool inside = sc == s;
   const Vec3 delta = s - sc;
@@ -67,7 +65,7 @@ void RbfCorrection::element(const Vec3& s, Vec3& p, double& da, Mat3* J) const {
   }
   const Eigen::ArrayXd& kv = inside ? phi : g;
   p = A_ * (s - Vec3::Ones()) + b_;
-  for (int j = 0; j < 3; ++j) p[j] += wc_.col(j).dot(kv.matrix());
+  for (int j = 0; j < 3; ++j) p[j] += w_.col(j).dot(kv.matrix());
   da = a0_ + (wa_.size() > 0 ? wa_.dot(phi.matrix()) : 0.0);
   if (J) {
     *J = A_;
@@ -78,7 +76,7 @@ void RbfCorrection::element(const Vec3& s, Vec3& p, double& da, Mat3* J) const {
         gi = d[i] / phi;
       else
         gi = d[i] / phi * (1.0 - dd / phi.square());
-      for (int j = 0; j < 3; ++j) (*J)(j, i) += wc_.col(j).dot(gi.matrix());
+      for (int j = 0; j < 3; ++j) (*J)(j, i) += w_.col(j).dot(gi.matrix());
     }
   }
   if (width_ > 0) isotropic_blend(s, width_, p, J, nullptr);

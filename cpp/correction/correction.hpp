@@ -62,9 +62,8 @@ class RbfCorrection final : public Correction {
   /// One element: dPh `p` and dalpha `da` at stretches s, and with J != nullptr dPh's Jacobian.
   void element(const Vec3& s, Vec3& p, double& da, Mat3* J) const;
 
-  MatX3 c_, w_;
-  /// c_ and w_ column-major: per-axis contiguous columns for the vectorised kernel loop
-  Eigen::Matrix<double, Eigen::Dynamic, 3> cc_, wc_;
+  /// centres and weights column-major: per-axis contiguous columns for the vectorised kernel loop
+  Eigen::Matrix<double, Eigen::Dynamic, 3> c_, w_;
   Mat3 A_;
   Vec3 b_;
   VecX wa_;
