@@ -116,15 +116,20 @@ class Problem:
             if mv is not None:
                 state = (state[0], initial_velocity(self.scene, model, rec, self.embedding(rec), state[0],
                                                     marker_v=mv))
+        P, sim = self.simulate_markers(model, rec, state, newton)
+        if memo_key is not None:
+            self._memo[memo_key] = (rec, self.scene, P.copy())
+        return (P, sim) if full else P
+
+    def simulate_markers(self, model, rec, state, newton: int):
+        """(markers (T, K, 3) at rec.times, (sim_t, X, V)) of `rec` simulated from `state` with
+        at most `newton` Newton iterations per step (1: the scene's LinearisedReplay)."""
         if newton == 1 and self.reuse_factor and not rec.has_drive:
             sim = self._linearised(model, rec, state)
         else:
             sim = replay.simulate_recording(self.scene, model, rec, state=state, max_newton=newton)
         self.simulations += 1
-        P = replay.predict_markers(self.scene, model, rec, sim=sim, embedding=self.embedding(rec))
-        if memo_key is not None:
-            self._memo[memo_key] = (rec, self.scene, P.copy())
-        return (P, sim) if full else P
+        return replay.predict_markers(self.scene, model, rec, sim=sim, embedding=self.embedding(rec)), sim
 
     def start_velocity(self, rec):
         """The "auto" start of `rec`: its marker velocities (K, 3) at rec.times[0] when it starts
@@ -353,21 +358,12 @@ def start_in_motion(problem, rec: Recording, frames: int = 7, scales=START_SCALE
         return scene.model(material=Material(mat.model, np.asarray(mat.youngs_modulus, float) * s,
                                              mat.poisson_ratio, mat.density, list(mat.edits)))
 
-    def markers(model, v):
-        state = (x0, v)
-        if problem.fast_newton == 1 and problem.reuse_factor:
-            sim = problem._linearised(model, rec, state)
-        else:
-            sim = replay.simulate_recording(scene, model, rec, state=state, max_newton=problem.fast_newton)
-        problem.simulations += 1
-        return replay.predict_markers(scene, model, rec, sim=sim, embedding=emb)
-
     def scan(v):
         best = (np.inf, None, None)
         for s in scales:
             model = model_at(s)
             try:
-                pred = markers(model, v)
+                pred = problem.simulate_markers(model, rec, (x0, v), problem.fast_newton)[0]
             except RuntimeError:
                 continue
             r = ((pred - rec.markers)[seen] / size).ravel()
