@@ -90,7 +90,7 @@ class EffectContext:
     region: np.ndarray | None = None  # bool (#T): heterogeneity region
     clamp_layer: np.ndarray = field(default=None)  # bool (#T): elements touching the clamp
     # discretisation: log stiffness offset folded into `material` (baseline), the offset that
-    # matches the once-refined mesh, and the plausible range (see pipeline._discretisation)
+    # matches the once-refined mesh, and the plausible range (see discretisation.discretisation)
     offset_applied: float = 0.0
     offset_reference: float = 0.0
     offset_range: tuple = (0.0, 0.0)

@@ -76,7 +76,7 @@ def debias(problem, r: np.ndarray, recs) -> np.ndarray:
     """The residual `r` of `recs` with the mesh's discretisation discrepancy removed (multi-
     fidelity additive correction): r + w b, b the stacked (refined - coarse) nominal marker
     discrepancy of the recordings (problem.disc_bias, {id(rec): vector}, set by
-    pipeline._discretisation), w the least-squares weight for this very residual clipped to
+    discretisation.discretisation), w the least-squares weight for this very residual clipped to
     problem.disc_weight_range (how far the truth lies beyond the refined mesh: a bounded
     nuisance profiled out of every fit, so it cannot invent an effect and no family can gain by
     mimicking it). Recordings without a discrepancy (held-out ones) are returned unchanged."""

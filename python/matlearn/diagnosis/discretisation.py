@@ -1,0 +1,83 @@
+"""The coarse model's discretisation bias in the diagnosis (`discretisation`): measured against
+the once-refined mesh, removed from the train residual with a bounded weight (fitting.debias),
+and the floor it leaves."""
+from __future__ import annotations
+
+import numpy as np
+
+from . import fitting
+
+
+# How far the truth lies beyond the once-refined mesh, as a multiple of the refined-minus-coarse
+# discrepancy (linear tets, error ~ h^2): 0.55 for a truth meshed 1.5x finer than the model, 4/3
+# for the continuum (Richardson).
+DISC_RANGE = (0.55, 4.0 / 3.0)
+
+
+def discretisation(P, ctx, say):
+    """The mesh's discretisation bias, its removal, and the floor it leaves.
+
+    Coarse linear tets are too stiff. The nominal model is re-simulated on the once-refined mesh
+    (every train recording) and the coarse model's stiffness offset theta_r that best matches it
+    is fitted (first recording). How far the recordings' "truth" lies beyond the refined mesh is
+    unknown: from a mesh 1.5x finer than the model's to the continuum (DISC_RANGE times the
+    refined-minus-coarse discrepancy). Two bounded nuisances remove it:
+    - the baseline every family is fitted on top of takes the data's best stiffness offset,
+      clipped to DISC_RANGE * theta_r;
+    - what the offset leaves of the refined-minus-coarse marker discrepancy, b, is added to every
+      train prediction with a weight profiled out of each fit inside DISC_RANGE
+      (fitting.debias: multi-fidelity additive correction), so the data's discretisation error
+      is removed instead of only floored.
+    The floor is what the weight's uncertainty (half its range) leaves of b; the conservative
+    floor assumes a truth as far as the continuum whose error need not follow b's spatial
+    pattern at all: (4/3)^2 |b|^2 (a truth meshed in another pattern, or a model only 1-2 tets
+    across, leaves up to ~2 |b|^2 after the correction; a well-resolved one ~0.02 |b|^2). The
+    marker noise is added by the caller.
+    Returns (baseline context, (floor rss, conservative floor rss), offset theta, (b, scale),
+    raw rss of the nominal model as given, nothing removed):
+    b the stacked discrepancy over all train recordings and scale the factor that turns an rss
+    of b into floor units (for ranking.discretisation_credit: what a family can gain by
+    mimicking the discrepancy the correction leaves)."""
+    from dataclasses import replace
+
+    from .problem import Problem as _Problem
+
+    fine = _Problem.__new__(_Problem)
+    fine.__dict__.update(P.__dict__)
+    fine.scene = P.refined_scene()
+    fine._emb = {}
+    fine._rest_offsets = {}
+    fine.disc_bias = {}
+    fine.simulations = 0
+    P.disc_bias = {}
+    recs = P.train
+    rc = fitting.marker_residual(P, P.scene.model(), recs)
+    rf = fitting.marker_residual(fine, fine.scene.model(), recs)
+    P.simulations += fine.simulations
+    first = slice(0, 3 * int(recs[0].seen.sum()))  # the offset is measured on one recording
+    fit = fitting.refine(P, ctx, ["stiffness_scale"], {}, r_start=(rc - rf)[first], iterations=2,
+                         target=rf[first], recs=recs[:1])
+    theta_r = float(fit.params["stiffness_scale"][0])
+    b = rf - fitting.residual_of(P, ctx, fit.params, recs)
+    lo, hi = sorted((DISC_RANGE[0] * theta_r, DISC_RANGE[1] * theta_r))
+    usable = bool(np.all(np.isfinite(b))) and float(np.abs(b).max(initial=0.0)) < 0.5
+    if usable:  # (a failed simulation's constant residual is not a discrepancy)
+        sizes = np.cumsum([3 * int(r.seen.sum()) for r in recs])[:-1]
+        P.disc_bias = {id(r): part for r, part in zip(recs, np.split(b, sizes))}
+        P.disc_weight_range = DISC_RANGE
+    else:
+        b = np.zeros_like(b)
+    data = fitting.refine(P, ctx, ["stiffness_scale"], {"stiffness_scale": [theta_r]}, iterations=2)
+    theta = float(np.clip(data.params["stiffness_scale"][0], lo, hi))
+    scale = (0.5 * (DISC_RANGE[1] - DISC_RANGE[0])) ** 2
+    rss_disc = scale * float(b @ b)
+    rss_wide = DISC_RANGE[1] ** 2 * float(b @ b)
+    mat = ctx.material
+    E = np.asarray(mat.youngs_modulus, float) * np.exp(theta)
+    new = replace(ctx, material=replace(mat, youngs_modulus=E), offset_applied=theta,
+                  offset_reference=theta_r, offset_range=(lo, hi))
+    new.clamp_layer = ctx.clamp_layer
+    say(f"discretisation: coarse-vs-refined rss {float((rc - rf) @ (rc - rf)):.3e}, after "
+        f"stiffness offset {float(b @ b):.3e} (removed with a weight in {DISC_RANGE}); offset "
+        f"range [{np.exp(lo):.3f}, {np.exp(hi):.3f}], data {np.exp(data.params['stiffness_scale'][0]):.3f}")
+    return new, (float(rss_disc), float(rss_wide)), theta, (b, scale), float(rc @ rc)
