@@ -439,9 +439,9 @@ def check(problem, ctx, selected, rss_floor, say=None, add_factor=0.6, stateless
     if passes and "rayleigh_damping" in lin and "rayleigh_damping" not in cands and abs(x_h[K + 1]) > 0.1:
         cands.append("rayleigh_damping")
     alternatives = {}
+    stop = min(cost if passes else np.inf, dmg if damaged else np.inf)  # a rival's fit may stop below it
     for name in cands:
         k = len(lin[name][0]) + (1 if name == "heterogeneity" else 0)
-        stop = min(cost if passes else np.inf, dmg if damaged else np.inf)
         alternatives[name] = (_stateless(problem, ctx, params, x_ref, recs, name, lin[name][0], stop=stop,
                                          proj=shared), k)
     detected, best_name = decide(ref, cost, alternatives, n, dof, K, rss_floor, add_factor, extra)
