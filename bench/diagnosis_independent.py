@@ -43,6 +43,7 @@ import trimesh  # noqa: E402
 from scipy.interpolate import CubicSpline  # noqa: E402
 
 from matlearn import _core, meshes  # noqa: E402
+from provenance import code_commit  # noqa: E402
 from matlearn.materials import Damping, Material, make_model  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent
@@ -472,7 +473,7 @@ def run_case(work: Path, name: str, effects, shape_kind, seed, fresh: bool, time
     if build_only:
         return row
     out = case / "diag"
-    row["commit"] = _commit()
+    row["commit"] = code_commit()
     cmd = [sys.executable, "-m", "matlearn", "diagnose", str(case / "scene.toml"), "--out", str(out)]
     t1, c1 = time.time(), resource.getrusage(resource.RUSAGE_CHILDREN)
     try:
@@ -511,17 +512,6 @@ def totals(rows) -> dict:
             "max_wall_s": float(max((r.get("wall_s", 0.0) for r in rows), default=0.0))}
 
 
-def _commit() -> str:
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                              text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "python/matlearn"], cwd=ROOT.parent,
-                               capture_output=True, text=True).stdout.strip()
-        return head + ("+dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=11)
@@ -535,7 +525,7 @@ def main(argv=None):
     ap.add_argument("--work", type=Path)
     args = ap.parse_args(argv)
     work = args.work or ROOT / "work" / f"independent_{args.seed}"
-    commit = _commit()  # the code the diagnoses run on (taken at the start)
+    commit = code_commit()  # the code the diagnoses run on (taken at the start)
     rows, not_run = [], []
     print(f"{'case':16s} {'shape':10s} {'true':32s} {'verdict':34s} top1 strict  before  after effect  wall   cpu")
     for i, (name, effects, shape_kind) in enumerate(CASES):

@@ -45,6 +45,7 @@ from matlearn.synthetic import make_case
 
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
+from provenance import code_commit  # noqa: E402
 from diagnosis_suite_cases import (NOMINAL_DAMPING, build_motions, build_truth, make_shape,  # noqa: E402
                              named_specs, random_specs)
 
@@ -110,22 +111,8 @@ def effect_size(work: Path, name: str, spec: dict, seed: int) -> float | None:
 
 
 def _commit() -> str:
-    """The code a row was measured with: MATLEARN_SUITE_COMMIT (set when running a snapshot of a
-    commit), else HEAD of this checkout, "+dirty" when python/matlearn/diagnosis has edits."""
-    import os
-    import subprocess
-
-    if os.environ.get("MATLEARN_SUITE_COMMIT"):
-        return os.environ["MATLEARN_SUITE_COMMIT"]
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                             text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "python/matlearn/diagnosis"],
-                               cwd=ROOT.parent, capture_output=True, text=True).stdout.strip()
-        return out + ("+dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
+    """The code a row was measured with (provenance.code_commit over the diagnosis code)."""
+    return code_commit(("python/matlearn/diagnosis",))
 
 def iou(a, b) -> float:
     a, b = set(map(int, a)), set(map(int, b))

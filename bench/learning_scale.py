@@ -42,7 +42,6 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -54,6 +53,7 @@ from matlearn.learning.loop import LearnOptions, learn
 from matlearn.materials import Damping, Material
 from matlearn.scene import load_scene
 from matlearn.synthetic import Motion, make_case
+from provenance import code_commit
 
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results" / "learning_scale.json"
@@ -74,17 +74,6 @@ def build(work: Path, tets: int, duration: float, frame_rate: float, fraction: f
                      [[-1, -1, -1], [1e-3, 1, 1]],
                      [Motion("release", "train", duration, load={"box": tip, "force": [0.0, -1.0, 0.0]})],
                      marker_fraction=fraction, frame_rate=frame_rate, seed=0, progress=True)
-
-
-def commit() -> str:
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                              text=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "cpp", "python", "bench/learning_scale.py"],
-                               cwd=ROOT.parent, capture_output=True, text=True).stdout.strip()
-        return head + ("+uncommitted" if dirty else "")
-    except OSError:
-        return "unknown"
 
 
 def instrument(stages: dict, first: list):
@@ -146,7 +135,7 @@ def stride_check(sc, stride: int) -> dict:
             "wall_s_stride_1": out[1][0], f"wall_s_stride_{stride}": out[stride][0],
             "control_force_relative_difference": float(np.linalg.norm(fck - fc1) / np.linalg.norm(fc1)),
             "trajectory_max_difference_m": float(np.abs(out[stride][1]["X"] - out[1][1]["X"]).max()),
-            "load_avg_1min_end": os.getloadavg()[0], "commit": commit()}
+            "load_avg_1min_end": os.getloadavg()[0], "commit": code_commit(("cpp", "python", "bench/learning_scale.py"))}
 
 
 def main(argv=None) -> int:
@@ -195,7 +184,7 @@ def main(argv=None) -> int:
                        **({"extrapolation": EXTRAPOLATION_WEIGHTS} if args.penalised_family else {}))
     run = work / f"run_{sc.mesh.num_tets}"
     shutil.rmtree(run, ignore_errors=True)
-    code = commit()  # the code that runs (read before the run: the tree may change meanwhile)
+    code = code_commit(("cpp", "python", "bench/learning_scale.py"))  # the code that runs (read before the run: the tree may change meanwhile)
     stages, first = {}, []
     originals = instrument(stages, first)
     load0 = os.getloadavg()[0]
