@@ -523,6 +523,8 @@ def main(argv=None):
                     help="write the JSON from the rows already cached in the work folder, run nothing")
     ap.add_argument("--timeout", type=float, default=420.0, help="per-diagnosis limit (s)")
     ap.add_argument("--work", type=Path)
+    ap.add_argument("--out", type=Path, help="results JSON (default bench/results/diagnosis_independent.json for "
+                                             "seed 11, diagnosis_independent_<seed>.json otherwise)")
     args = ap.parse_args(argv)
     work = args.work or ROOT / "work" / f"independent_{args.seed}"
     commit = code_commit()  # the code the diagnoses run on (taken at the start)
@@ -571,7 +573,8 @@ def main(argv=None):
                              "tuned on",
                      "misses": misses},
            "cases": rows, "totals": tot}
-    out = ROOT / "results" / "diagnosis_independent.json"
+    out = args.out or ROOT / "results" / ("diagnosis_independent.json" if args.seed == 11
+                                          else f"diagnosis_independent_{args.seed}.json")
     out.write_text(json.dumps(res, indent=1, default=lambda o: np.asarray(o).tolist()))
     print(f"wrote {out}")
     return 0

@@ -416,6 +416,11 @@ VecX SpaceTimeProblem::solve_linear(const SolveOptions& opt, int* iterations) co
   return D.cwiseProduct(y);
 }
 
+namespace {
+// A cost this far below the initial one is round-off: the residual is ~1e-10 of where it started.
+constexpr double kRoundoffCost = 1e-20;
+}  // namespace
+
 SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const ProgressFn& progress) {
   if (Z.rows() != frames_ || Z.cols() != r_)
     throw InvalidInput("Z: expected shape (" + std::to_string(frames_) + ", " +
@@ -473,6 +478,9 @@ SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const Pro
     record(Ct);
     if (progress) progress(it + 1, opt.max_iterations);
     if (cost - 0.5 * Ct.squaredNorm() < opt.tolerance * cost) break;
+    // Converged to round-off (an exact model fitted exactly): further steps only shuffle
+    // rounding errors, the line search shortens them and CG cannot reach its relative tolerance.
+    if (0.5 * Ct.squaredNorm() <= kRoundoffCost * rep.cost.front()) break;
   }
   linearized_ = false;  // Z moved past the last linearisation
   precond_.reset();
