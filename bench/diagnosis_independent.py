@@ -322,7 +322,8 @@ def build_case(work: Path, name: str, effects: list, shape_kind: str, seed: int)
             info["params"]["stiffness_poly"] = [c1, 40 * c1]
         elif eff in ("tension_nonlinearity", "compression_nonlinearity"):
             centre = 1.0 + (1 if eff.startswith("tension") else -1) * rng.uniform(0.012, 0.03)
-            width = rng.uniform(0.012, 0.025)
+            # the bump must not reach the rest stretch 1 (the rest state would be stressed)
+            width = min(rng.uniform(0.012, 0.025), abs(centre - 1.0))
             # a stiffening bump, or a milder softening one (a strong one makes the truth unstable)
             amp = float(rng.uniform(0.3, 0.6) if sign > 0 else -rng.uniform(0.15, 0.3)) * E0 * width
             model_t, edits = "designed", [(amp, float(centre), float(width))]
@@ -489,7 +490,7 @@ def run_case(work: Path, name: str, effects, shape_kind, seed, fresh: bool, time
         row["error"] = f"timeout after {timeout:.0f} s"
     if "error" not in row:
         row.update(score(json.loads((out / "diagnosis.json").read_text()), info))
-    cache.write_text(json.dumps(row, indent=1))
+    cache.write_text(json.dumps(row, indent=1, default=lambda o: np.asarray(o).tolist()))
     return row
 
 

@@ -46,7 +46,7 @@ import sys
 import time
 from pathlib import Path
 
-from matlearn import meshes
+from matlearn import _core, meshes
 from matlearn.learning import loop
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS
 from matlearn.learning.loop import LearnOptions, learn
@@ -238,6 +238,7 @@ def main(argv=None) -> int:
                        "extrapolation": [list(x) for x in opt.extrapolation]},
            "case_build_s": case_s, "load_avg_1min_start": load0, "load_avg_1min_end": load1,
            "cpus": os.cpu_count(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+           "openblas_threads": _core.blas_threads(),
            "commit": code}
     doc["options"]["symmetric"] = opt.symmetric
     RESULTS.parent.mkdir(parents=True, exist_ok=True)

@@ -139,14 +139,24 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   st.Fh.resize(m, 3);
   st.Fhdot.resize(m, 3);
   st.Fdot.resize(m);
-#pragma omp parallel for schedule(dynamic, 256) if (m >= kParallelMinTets)
-  for (int e = 0; e < m; ++e) {
-    const Mat3 F = mesh_->deformation_gradient(x, e);
-    st.Fdot[e] = mesh_->deformation_gradient(v, e);
-    Vec3 s;
-    rotation_variant_svd(F, st.U[e], s, st.V[e]);
-    st.Fh.row(e) = s.transpose();
-    st.Fhdot.row(e) = (st.U[e].transpose() * st.Fdot[e] * st.V[e]).diagonal().transpose();
+  // Element SVDs kSvdLanes at a time (bitwise the scalar SVD, ~2x faster per element).
+  const int blocks = (m + kSvdLanes - 1) / kSvdLanes;
+#pragma omp parallel for schedule(dynamic, 32) if (m >= kParallelMinTets)
+  for (int b = 0; b < blocks; ++b) {
+    const int e0 = b * kSvdLanes, count = std::min(kSvdLanes, m - e0);
+    Mat3 F[kSvdLanes], U[kSvdLanes], V[kSvdLanes];
+    Vec3 s[kSvdLanes];
+    for (int l = 0; l < kSvdLanes; ++l)
+      F[l] = l < count ? mesh_->deformation_gradient(x, e0 + l) : Mat3::Identity();  // (padding)
+    rotation_variant_svd_lanes(F, U, s, V);
+    for (int l = 0; l < count; ++l) {
+      const int e = e0 + l;
+      st.U[e] = U[l];
+      st.V[e] = V[l];
+      st.Fdot[e] = mesh_->deformation_gradient(v, e);
+      st.Fh.row(e) = s[l].transpose();
+      st.Fhdot.row(e) = (U[l].transpose() * st.Fdot[e] * V[l]).diagonal().transpose();
+    }
   }
   correction::CorrectionOutput corr;
   const bool has_corr = correction_ != nullptr;

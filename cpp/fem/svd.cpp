@@ -1,6 +1,7 @@
 #include "fem/svd.hpp"
 
 #include <Eigen/SVD>
+#include <algorithm>
 #include <cmath>
 
 namespace matlearn::fem {
@@ -111,6 +112,116 @@ void rotation_variant_svd(const Mat3& F, Mat3& U, Vec3& s, Mat3& V) {
   const double offR = std::abs(R(0, 1)) + std::abs(R(0, 2)) + std::abs(R(1, 2));
   if (!(offR <= tol) || s[0] < s[1] || s[1] < std::abs(s[2]) - tol || !s.allFinite())
     return jacobi_svd(F, U, s, V);
+}
+
+namespace {
+
+using Lane = Eigen::Array<double, kSvdLanes, 1>;
+
+// One Jacobi rotation in the (p, q) plane of every lane that is `on` (not converged at the start
+// of this sweep) and whose a_pq is not negligible (k: the pair's off-diagonal, kr / kq: the
+// off-diagonals (p, r) and (q, r) it mixes), exactly as in rotation_variant_svd.
+template <int p, int q, int k, int kr, int kq>
+inline void jacobi_rotate(Lane* d, Lane* o, Lane (*v)[3], const Lane& on) {
+  const Lane apq = o[k];
+  const auto active = (on > 0.0) && (apq.abs() > 1e-300);
+  const Lane diff = d[q] - d[p];
+  const Lane sgn = ((diff == 0.0) || ((diff > 0.0) == (apq > 0.0))).select(Lane::Constant(1.0), Lane::Constant(-1.0));
+  // (inactive lanes may divide 0 by 0 here; select discards them)
+  const Lane t = sgn * 2.0 * apq.abs() / (diff.abs() + (diff * diff + 4.0 * apq * apq).sqrt());
+  const Lane c = 1.0 / (t * t + 1.0).sqrt(), sn = t * c;
+  d[p] = active.select(d[p] - t * apq, d[p]);
+  d[q] = active.select(d[q] + t * apq, d[q]);
+  o[k] = active.select(Lane::Zero(), o[k]);
+  const Lane arp = o[kr], arq = o[kq];
+  o[kr] = active.select(c * arp - sn * arq, arp);
+  o[kq] = active.select(sn * arp + c * arq, arq);
+  for (int i = 0; i < 3; ++i) {
+    const Lane vip = v[i][p], viq = v[i][q];
+    v[i][p] = active.select(c * vip - sn * viq, vip);
+    v[i][q] = active.select(sn * vip + c * viq, viq);
+  }
+}
+
+// The Givens rotation of `givens` + `rotate` in rotation_variant_svd, every lane.
+inline void givens_rotate(Lane (*R)[3], Lane (*U)[3], int p, int q, int col) {
+  const Lane a = R[p][col], b = R[q][col];
+  const Lane r = (a * a + b * b).sqrt();
+  const auto zero = r == 0.0;
+  const Lane c = zero.select(Lane::Ones(), a / r), sn = zero.select(Lane::Zero(), b / r);
+  for (int k = 0; k < 3; ++k) {
+    const Lane rp = R[p][k], rq = R[q][k];
+    R[p][k] = c * rp + sn * rq;
+    R[q][k] = -sn * rp + c * rq;
+    const Lane up = U[k][p], uq = U[k][q];
+    U[k][p] = c * up + sn * uq;
+    U[k][q] = -sn * up + c * uq;
+  }
+}
+
+}  // namespace
+
+// flatten: Eigen's lane expressions are inlined into one loop-free body (left to the inliner,
+// GCC kept ~10 of them as out-of-line calls, and the lanes were no faster than the scalar path)
+#if defined(__GNUC__)
+__attribute__((flatten))
+#endif
+void rotation_variant_svd_lanes(const Mat3* F, Mat3* U, Vec3* s, Mat3* V) {
+  constexpr int L = kSvdLanes;
+  Lane d[3], o[3], v[3][3];
+  for (int l = 0; l < L; ++l) {
+    const Mat3 A = F[l].transpose() * F[l];
+    d[0][l] = A(0, 0), d[1][l] = A(1, 1), d[2][l] = A(2, 2);
+    o[0][l] = A(0, 1), o[1][l] = A(0, 2), o[2][l] = A(1, 2);
+  }
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) v[i][j].setConstant(i == j ? 1.0 : 0.0);
+  const Lane scale = d[0] + d[1] + d[2];
+  const Lane lim = 1e-34 * scale * scale;
+  for (int sweep = 0; sweep < 12; ++sweep) {
+    // the scalar loop's convergence test, once per sweep (a NaN lane is never on: it is
+    // redone by the scalar path below, which sends it to its fallback)
+    const auto not_converged = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] > lim;
+    if (!not_converged.any()) break;
+    const Lane on = not_converged.select(Lane::Ones(), Lane::Zero());
+    jacobi_rotate<0, 1, 0, 1, 2>(d, o, v, on);
+    jacobi_rotate<0, 2, 1, 0, 2>(d, o, v, on);
+    jacobi_rotate<1, 2, 2, 0, 1>(d, o, v, on);
+  }
+  Lane R[3][3], Ul[3][3];
+  for (int l = 0; l < L; ++l) {
+    Mat3& Vm = V[l];
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) Vm(i, j) = v[i][j][l];
+    double lam[3] = {d[0][l], d[1][l], d[2][l]};
+    auto swap_cols = [&](int i, int j) {
+      std::swap(lam[i], lam[j]);
+      Vm.col(i).swap(Vm.col(j));
+      Vm.col(j) *= -1;
+    };
+    if (lam[0] < lam[1]) swap_cols(0, 1);
+    if (lam[0] < lam[2]) swap_cols(0, 2);
+    if (lam[1] < lam[2]) swap_cols(1, 2);
+    const Mat3 B = F[l] * Vm;
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) R[i][j][l] = B(i, j);
+  }
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) Ul[i][j].setConstant(i == j ? 1.0 : 0.0);
+  givens_rotate(R, Ul, 0, 1, 0);
+  givens_rotate(R, Ul, 0, 2, 0);
+  givens_rotate(R, Ul, 1, 2, 1);
+  for (int l = 0; l < L; ++l) {
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) U[l](i, j) = Ul[i][j][l];
+    s[l] = Vec3(R[0][0][l], R[1][1][l], R[2][2][l]);
+    const double sc = scale[l];
+    const double tol = 1e-14 * std::sqrt(sc);
+    const double offR = std::abs(R[0][1][l]) + std::abs(R[0][2][l]) + std::abs(R[1][2][l]);
+    if (!(sc > 0) || !std::isfinite(sc) || !(offR <= tol) || s[l][0] < s[l][1] ||
+        s[l][1] < std::abs(s[l][2]) - tol || !s[l].allFinite())
+      rotation_variant_svd(F[l], U[l], s[l], V[l]);  // the scalar path and its robust fallback
+  }
 }
 
 }  // namespace matlearn::fem

@@ -37,12 +37,16 @@ MatX3 principal_stretches(const fem::Model& model, const MatX3& X) {
   for (long j = 0; j < frames; ++j) {
     const MatX3 x = frame_rows(X, int(j), n);
     model.check_state(x, "X");
+    const int blocks = (m + fem::kSvdLanes - 1) / fem::kSvdLanes;
 #pragma omp parallel for schedule(static)
-    for (int e = 0; e < m; ++e) {
-      Mat3 U, Vm;
-      Vec3 s;
-      fem::rotation_variant_svd(model.mesh().deformation_gradient(x, e), U, s, Vm);
-      S.row(j * m + e) = s.transpose();
+    for (int b = 0; b < blocks; ++b) {  // kSvdLanes elements at a time (bitwise the scalar SVD)
+      const int e0 = b * fem::kSvdLanes, count = std::min(fem::kSvdLanes, m - e0);
+      Mat3 F[fem::kSvdLanes], U[fem::kSvdLanes], Vm[fem::kSvdLanes];
+      Vec3 s[fem::kSvdLanes];
+      for (int l = 0; l < fem::kSvdLanes; ++l)
+        F[l] = l < count ? model.mesh().deformation_gradient(x, e0 + l) : Mat3::Identity();
+      fem::rotation_variant_svd_lanes(F, U, s, Vm);
+      for (int l = 0; l < count; ++l) S.row(j * m + e0 + l) = s[l].transpose();
     }
   }
   return S;

@@ -1,4 +1,7 @@
+#include <cstdlib>
+
 #include "common.hpp"
+#include "solvers/blas_threads.hpp"
 
 PYBIND11_MODULE(_core, m) {
   m.doc() = "matlearn C++ core: FEM, materials, implicit stepping, corrections (private API)";
@@ -19,6 +22,15 @@ PYBIND11_MODULE(_core, m) {
   matlearn::bindings::define_observation(obs);
   auto mesh = m.def_submodule("mesh", "TetGen tetrahedralisation");
   matlearn::bindings::define_mesh(mesh);
+  // One OpenBLAS thread unless the user asked for more (solvers/blas_threads.hpp: OpenBLAS
+  // threads spinning between CHOLMOD calls starve the OpenMP element loops).
+  if (!std::getenv("OPENBLAS_NUM_THREADS") && !std::getenv("GOTO_NUM_THREADS"))
+    matlearn::solvers::set_blas_threads(1);
+  m.def("blas_threads", &matlearn::solvers::blas_threads,
+        "OpenBLAS's thread count (the BLAS under CHOLMOD), -1 if the BLAS is not OpenBLAS. matlearn "
+        "sets 1 when loaded unless OPENBLAS_NUM_THREADS is set.");
+  m.def("set_blas_threads", &matlearn::solvers::set_blas_threads, py::arg("n"),
+        "Set OpenBLAS's thread count; False if the BLAS is not OpenBLAS.");
   m.def("build_info", []() {
     py::dict d;
 #ifdef _OPENMP

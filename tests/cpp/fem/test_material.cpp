@@ -2,6 +2,7 @@
 // dStress/ds by central differences, and the 9x9 dP/dF assembled from principal data against
 // finite differences of P(F) = U diag(Ph(s)) V^T, on seeded random, near-repeated and inverted
 // states, for every material (the designed one with tension and compression edits).
+#include <algorithm>
 #include <random>
 
 #include "check.hpp"
@@ -127,6 +128,52 @@ TEST_CASE(rotation_variant_svd_reconstructs) {
     std::sort(sorted.data(), sorted.data() + 3, std::greater<>());
     for (int k = 0; k < 3; ++k) CHECK_CLOSE(sh[k], sorted[k], 1e-8, ctx("svd values", s, k));
   }
+}
+
+TEST_CASE(svd_lanes_equal_the_scalar_svd_bitwise) {
+  // Batches mixing every kind of state the scalar path meets: random and near-repeated
+  // stretches, pure rotations (its robust fallback), exact identity (no sweep), inverted,
+  // rank-deficient, zero and NaN matrices, so lanes converge after different sweep counts.
+  std::mt19937 rng(17);
+  std::normal_distribution<double> nrm(0.0, 1.0);
+  std::vector<Mat3> Fs;
+  for (const Vec3& s : states())
+    Fs.push_back(mltest::random_rotation(rng) * s.asDiagonal() * mltest::random_rotation(rng).transpose());
+  for (double eps : {0.0, 1e-12, 1e-8, 1e-4, 1e-2, 0.3})
+    for (int i = 0; i < 12; ++i) {
+      Mat3 M;
+      for (int k = 0; k < 9; ++k) M.data()[k] = nrm(rng);
+      Fs.push_back(mltest::random_rotation(rng) * (Mat3::Identity() + eps * M));
+    }
+  Fs.push_back(Mat3::Identity());
+  Fs.push_back(Mat3::Zero());
+  Fs.push_back(Vec3(1.0, 2.0, 0.0).asDiagonal());  // rank-deficient
+  Fs.push_back(Vec3(1.0, 1.0, -1.0).asDiagonal());  // inverted, repeated
+  Mat3 bad = Mat3::Identity();
+  bad(1, 2) = std::nan("");
+  Fs.push_back(bad);
+  std::shuffle(Fs.begin(), Fs.end(), rng);
+  while (Fs.size() % kSvdLanes) Fs.push_back(Mat3::Identity());
+  const int n = int(Fs.size());
+  std::vector<Mat3> U(n), V(n);
+  std::vector<Vec3> S(n);
+  for (int i = 0; i < n; i += kSvdLanes) rotation_variant_svd_lanes(&Fs[i], &U[i], &S[i], &V[i]);
+  int differ = 0;
+  for (int i = 0; i < n; ++i) {
+    if (!Fs[i].allFinite()) continue;  // (its output is meaningless; it must not disturb the others)
+    Mat3 U1, V1;
+    Vec3 s1;
+    rotation_variant_svd(Fs[i], U1, s1, V1);
+    auto same = [](const double* a, const double* b, int k) {
+      for (int j = 0; j < k; ++j)
+        if (!(a[j] == b[j] || (std::isnan(a[j]) && std::isnan(b[j])))) return false;
+      return true;
+    };
+    if (!same(U1.data(), U[i].data(), 9) || !same(V1.data(), V[i].data(), 9) || !same(s1.data(), S[i].data(), 3))
+      ++differ;
+  }
+  CHECK(differ == 0);
+  if (differ) std::fprintf(stderr, "  %d of %d matrices differ\n", differ, n);
 }
 
 TEST_CASE(dPdF_matches_finite_differences_of_world_stress) {
