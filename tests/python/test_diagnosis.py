@@ -7,7 +7,6 @@ import pytest
 
 from matlearn.cli import main
 from matlearn.diagnosis import VOCABULARY, diagnose
-from matlearn.diagnosis.ranking import CREDIT_FACTOR
 
 from diagnosis_cases import FAST, tiny_case
 
@@ -57,15 +56,15 @@ def test_diagnosis_json_follows_the_public_format(stiff):
         assert isinstance(e["parameters"], dict)
         assert set(e.get("confounded_with", [])) <= set(VOCABULARY)
     # evidence order among the simulated fits: no later fit beats an earlier one, i.e. has a
-    # lower score and a residual lower by more than ranking.beats allows: CREDIT_FACTOR times its
-    # discretisation credit plus the noise tolerance (at most the noise rss)
+    # lower score and a residual lower by more than its discretisation credit plus the noise
+    # tolerance (at most the noise rss)
     sim = [e for e in d["effects"] if e.get("simulated")]
     rss0, noise = d["floor"]["rss_train"], d["floor"]["rss_noise"]
     rss = {e["name"]: rss0 * (1 - e["explained"]) for e in sim}
     for i, a in enumerate(sim):
         for b in sim[i + 1:]:
             gain = rss[a["name"]] - rss[b["name"]]
-            assert not (b["score"] < a["score"] and gain > CREDIT_FACTOR * b["discretisation_credit"] + noise), (a, b)
+            assert not (b["score"] < a["score"] and gain > b["discretisation_credit"] + noise), (a, b)
 
 
 def test_cli_rejects_a_missing_scene(tmp_path, capsys):

@@ -37,9 +37,6 @@ from .problem import Problem
 GAP_FACTOR = 2.5
 EXPLAINED_MIN = 0.5  # an effect must explain this fraction of the residual above the floor
 ADD_FACTOR = 0.6  # a further effect must cut (rss + floor) to this fraction
-# the cheap (linearised) ranking is trusted while every refined family's simulated rss stays
-# within this factor below its linear prediction; beyond it, every family is refined
-LINEAR_TRUST = 2.0
 # nested families: larger -> (smaller, embedding of the smaller's parameters in the larger's)
 NESTS = {
     "strain_dependent_damping": ("rayleigh_damping", lambda t: [t[0], t[1], 0.0, 0.0]),
@@ -234,8 +231,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         if (big in to_refine) != (small in to_refine):
             to_refine.append(small if big in to_refine else big)
     to_refine.sort(key=lambda n: n in NESTS)  # the nested (smaller) family first
-
-    def refine_family(name):
+    for name in to_refine:
         start = {name: cheap[name][0]}
         if name == "heterogeneity":  # the two levels of the patch map
             start = {name: list(het_start)}
@@ -256,22 +252,6 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             # element-level moves are free to follow whatever mesh error the correction leaves,
             # which only the conservative floor bounds: no moves once the fit is within it
             fits[name] = fitting.refine_region(P, ctx, fits[name], progress=say, floor=rss_wide)
-
-    for name in to_refine:
-        refine_family(name)
-    # The cheap fits rank the families by their linearisation at the baseline, which holds for
-    # small effects. A refined family whose simulated residual falls far below its linear
-    # prediction shows a large, nonlinear effect, where that ranking says nothing: then every
-    # family is refined by simulation (independent suite seed 12, a soft clamp pad at 0.18x: the
-    # stiffness scale fell from 8.6 predicted to 1.9 simulated, while the clamp-layer scale, whose
-    # linear fit had found 0.165, ranked 4th by its linear prediction and was never simulated).
-    worst = min(fits[n].rss / max(cheap[n][1], 1e-300) for n in fits)
-    if worst < 1.0 / LINEAR_TRUST:
-        extra = sorted((n for n in order if n not in fits and n != "density"), key=lambda n: n in NESTS)
-        say(f"the linearisation mispredicts a simulated fit {1 / worst:.1f}x: every family refined "
-            f"by simulation ({', '.join(extra) or 'none left'})")
-        for name in extra:
-            refine_family(name)
     if "stiffness_scale" in fits:
         f = fits["stiffness_scale"]
         fits["density"] = fitting.Fit("density", {"density": -f.params["stiffness_scale"]}, f.rss,
