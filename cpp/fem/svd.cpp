@@ -36,6 +36,27 @@ inline void givens(double a, double b, double& c, double& sn) {
   }
 }
 
+// Order V's columns by decreasing eigenvalue (swapping two columns and negating one keeps
+// det V = +1).
+inline void order_columns(double d0, double d1, double d2, Mat3& V) {
+  double lam[3] = {d0, d1, d2};
+  auto swap_cols = [&](int i, int j) {
+    std::swap(lam[i], lam[j]);
+    V.col(i).swap(V.col(j));
+    V.col(j) *= -1;
+  };
+  if (lam[0] < lam[1]) swap_cols(0, 1);
+  if (lam[0] < lam[2]) swap_cols(0, 2);
+  if (lam[1] < lam[2]) swap_cols(1, 2);
+}
+
+// Whether the Givens QR left a clean factorisation: R diagonal to round-off (offR: the sum of
+// |R_01|, |R_02|, |R_12|) and |s| ordered, for F^T F of trace `scale`.
+inline bool clean(double offR, const Vec3& s, double scale) {
+  const double tol = 1e-14 * std::sqrt(scale);
+  return offR <= tol && !(s[0] < s[1]) && !(s[1] < std::abs(s[2]) - tol) && s.allFinite();
+}
+
 }  // namespace
 
 void rotation_variant_svd(const Mat3& F, Mat3& U, Vec3& s, Mat3& V) {
@@ -76,16 +97,8 @@ void rotation_variant_svd(const Mat3& F, Mat3& U, Vec3& s, Mat3& V) {
       }
     }
   }
-  // 2. Order by decreasing eigenvalue (swapping two columns and negating one keeps det V = +1).
-  Vec3 lam(d[0], d[1], d[2]);
-  auto swap_cols = [&](int i, int j) {
-    std::swap(lam[i], lam[j]);
-    V.col(i).swap(V.col(j));
-    V.col(j) *= -1;
-  };
-  if (lam[0] < lam[1]) swap_cols(0, 1);
-  if (lam[0] < lam[2]) swap_cols(0, 2);
-  if (lam[1] < lam[2]) swap_cols(1, 2);
+  // 2. Order by decreasing eigenvalue.
+  order_columns(d[0], d[1], d[2], V);
   // 3. QR of B = F V by Givens rotations: B = U R, U proper, R upper triangular whose diagonal
   //    holds the singular values (the last one negative for an inverted F).
   Mat3 R = F * V;
@@ -108,9 +121,7 @@ void rotation_variant_svd(const Mat3& F, Mat3& U, Vec3& s, Mat3& V) {
   s = R.diagonal();
   // 4. Accept only a clean factorisation: R diagonal to round-off and |s| ordered. Otherwise
   //    (clustered or tiny singular values in awkward positions) use the robust two-sided SVD.
-  const double tol = 1e-14 * std::sqrt(scale);
-  const double offR = std::abs(R(0, 1)) + std::abs(R(0, 2)) + std::abs(R(1, 2));
-  if (!(offR <= tol) || s[0] < s[1] || s[1] < std::abs(s[2]) - tol || !s.allFinite())
+  if (!clean(std::abs(R(0, 1)) + std::abs(R(0, 2)) + std::abs(R(1, 2)), s, scale))
     return jacobi_svd(F, U, s, V);
 }
 
@@ -193,15 +204,7 @@ void rotation_variant_svd_lanes(const Mat3* F, Mat3* U, Vec3* s, Mat3* V) {
     Mat3& Vm = V[l];
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j) Vm(i, j) = v[i][j][l];
-    double lam[3] = {d[0][l], d[1][l], d[2][l]};
-    auto swap_cols = [&](int i, int j) {
-      std::swap(lam[i], lam[j]);
-      Vm.col(i).swap(Vm.col(j));
-      Vm.col(j) *= -1;
-    };
-    if (lam[0] < lam[1]) swap_cols(0, 1);
-    if (lam[0] < lam[2]) swap_cols(0, 2);
-    if (lam[1] < lam[2]) swap_cols(1, 2);
+    order_columns(d[0][l], d[1][l], d[2][l], Vm);
     const Mat3 B = F[l] * Vm;
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j) R[i][j][l] = B(i, j);
@@ -216,10 +219,8 @@ void rotation_variant_svd_lanes(const Mat3* F, Mat3* U, Vec3* s, Mat3* V) {
       for (int j = 0; j < 3; ++j) U[l](i, j) = Ul[i][j][l];
     s[l] = Vec3(R[0][0][l], R[1][1][l], R[2][2][l]);
     const double sc = scale[l];
-    const double tol = 1e-14 * std::sqrt(sc);
     const double offR = std::abs(R[0][1][l]) + std::abs(R[0][2][l]) + std::abs(R[1][2][l]);
-    if (!(sc > 0) || !std::isfinite(sc) || !(offR <= tol) || s[l][0] < s[l][1] ||
-        s[l][1] < std::abs(s[l][2]) - tol || !s[l].allFinite())
+    if (!(sc > 0) || !std::isfinite(sc) || !clean(offR, s[l], sc))
       rotation_variant_svd(F[l], U[l], s[l], V[l]);  // the scalar path and its robust fallback
   }
 }
