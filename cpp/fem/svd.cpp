@@ -128,14 +128,15 @@ void rotation_variant_svd(const Mat3& F, Mat3& U, Vec3& s, Mat3& V) {
 namespace {
 
 using Lane = Eigen::Array<double, kSvdLanes, 1>;
+using LaneMask = Eigen::Array<bool, kSvdLanes, 1>;
 
 // One Jacobi rotation in the (p, q) plane of every lane that is `on` (not converged at the start
 // of this sweep) and whose a_pq is not negligible (k: the pair's off-diagonal, kr / kq: the
 // off-diagonals (p, r) and (q, r) it mixes), exactly as in rotation_variant_svd.
 template <int p, int q, int k, int kr, int kq>
-inline void jacobi_rotate(Lane* d, Lane* o, Lane (*v)[3], const Lane& on) {
+inline void jacobi_rotate(Lane* d, Lane* o, Lane (*v)[3], const LaneMask& on) {
   const Lane apq = o[k];
-  const auto active = (on > 0.0) && (apq.abs() > 1e-300);
+  const LaneMask active = on && (apq.abs() > 1e-300);
   const Lane diff = d[q] - d[p];
   const Lane sgn = ((diff == 0.0) || ((diff > 0.0) == (apq > 0.0))).select(Lane::Constant(1.0), Lane::Constant(-1.0));
   // (inactive lanes may divide 0 by 0 here; select discards them)
@@ -177,11 +178,11 @@ inline void givens_rotate(Lane (*R)[3], Lane (*U)[3], int p, int q, int col) {
 #if defined(__GNUC__)
 __attribute__((flatten))
 #endif
-void rotation_variant_svd_lanes(const Mat3* F, Mat3* U, Vec3* s, Mat3* V) {
+void rotation_variant_svd_lanes(const Mat3* F, Mat3* U, Vec3* s, Mat3* V, int count) {
   constexpr int L = kSvdLanes;
   Lane d[3], o[3], v[3][3];
   for (int l = 0; l < L; ++l) {
-    const Mat3 A = F[l].transpose() * F[l];
+    const Mat3 A = l < count ? Mat3(F[l].transpose() * F[l]) : Mat3::Identity();  // (padding)
     d[0][l] = A(0, 0), d[1][l] = A(1, 1), d[2][l] = A(2, 2);
     o[0][l] = A(0, 1), o[1][l] = A(0, 2), o[2][l] = A(1, 2);
   }
@@ -192,20 +193,20 @@ void rotation_variant_svd_lanes(const Mat3* F, Mat3* U, Vec3* s, Mat3* V) {
   for (int sweep = 0; sweep < 12; ++sweep) {
     // the scalar loop's convergence test, once per sweep (a NaN lane is never on: it is
     // redone by the scalar path below, which sends it to its fallback)
-    const auto not_converged = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] > lim;
-    if (!not_converged.any()) break;
-    const Lane on = not_converged.select(Lane::Ones(), Lane::Zero());
+    const LaneMask on = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] > lim;
+    if (!on.any()) break;
     jacobi_rotate<0, 1, 0, 1, 2>(d, o, v, on);
     jacobi_rotate<0, 2, 1, 0, 2>(d, o, v, on);
     jacobi_rotate<1, 2, 2, 0, 1>(d, o, v, on);
   }
   Lane R[3][3], Ul[3][3];
   for (int l = 0; l < L; ++l) {
-    Mat3& Vm = V[l];
+    Mat3 Vm;
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j) Vm(i, j) = v[i][j][l];
     order_columns(d[0][l], d[1][l], d[2][l], Vm);
-    const Mat3 B = F[l] * Vm;
+    const Mat3 B = l < count ? Mat3(F[l] * Vm) : Mat3::Identity();
+    if (l < count) V[l] = Vm;
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j) R[i][j][l] = B(i, j);
   }
@@ -214,7 +215,7 @@ void rotation_variant_svd_lanes(const Mat3* F, Mat3* U, Vec3* s, Mat3* V) {
   givens_rotate(R, Ul, 0, 1, 0);
   givens_rotate(R, Ul, 0, 2, 0);
   givens_rotate(R, Ul, 1, 2, 1);
-  for (int l = 0; l < L; ++l) {
+  for (int l = 0; l < count; ++l) {
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j) U[l](i, j) = Ul[i][j][l];
     s[l] = Vec3(R[0][0][l], R[1][1][l], R[2][2][l]);

@@ -43,9 +43,8 @@ MatX3 principal_stretches(const fem::Model& model, const MatX3& X) {
       const int e0 = b * fem::kSvdLanes, count = std::min(fem::kSvdLanes, m - e0);
       Mat3 F[fem::kSvdLanes], U[fem::kSvdLanes], Vm[fem::kSvdLanes];
       Vec3 s[fem::kSvdLanes];
-      for (int l = 0; l < fem::kSvdLanes; ++l)
-        F[l] = l < count ? model.mesh().deformation_gradient(x, e0 + l) : Mat3::Identity();
-      fem::rotation_variant_svd_lanes(F, U, s, Vm);
+      for (int l = 0; l < count; ++l) F[l] = model.mesh().deformation_gradient(x, e0 + l);
+      fem::rotation_variant_svd_lanes(F, U, s, Vm, count);
       for (int l = 0; l < count; ++l) S.row(j * m + e0 + l) = s[l].transpose();
     }
   }
