@@ -30,6 +30,18 @@ class Correction {
   }
   /// True when evaluate() may run on several threads (false for Python callbacks).
   virtual bool thread_safe() const { return true; }
+
+  /// Tangent damping. When on, the Model's stiffness-proportional Rayleigh damping acts on the
+  /// *corrected* tangent: D_K = (alpha_K + dalpha) K_psd(nominal + correction) instead of
+  /// (alpha_K + dalpha) K_psd(nominal), so a material whose stiffness the correction changes
+  /// also changes its damping, as Rayleigh damping on the true material's tangent does. Off by
+  /// default (models learned before it existed keep their meaning). Both are passive: the
+  /// tangent is projected to PSD per element and alpha_K + dalpha is clamped at 0.
+  bool tangent_damping() const { return tangent_damping_; }
+  void set_tangent_damping(bool on) { tangent_damping_ = on; }
+
+ private:
+  bool tangent_damping_ = false;
 };
 
 /// RBF correction over principal stretches (method.md section 6):

@@ -157,9 +157,11 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   }
   correction::CorrectionOutput corr;
   const bool has_corr = correction_ != nullptr;
+  // Tangent damping: alpha_K acts on the corrected tangent, so forces need its Jacobian too.
+  const bool corr_damp = has_corr && correction_->tangent_damping();
   if (has_corr) {
     // Force-only evaluations (residuals, chord steps) need no correction Jacobians.
-    if (flags & (kStiffness | kDamping))
+    if ((flags & (kStiffness | kDamping)) || (corr_damp && (flags & (kForce | kNominalKv))))
       correction_->evaluate(st.Fh, st.Fhdot, corr);
     else
       correction_->evaluate_values(st.Fh, st.Fhdot, corr);
@@ -193,12 +195,14 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
     const Mat3& U = st.U[e];
     const Mat3& V = st.V[e];
     const double cm = st.alpha_M[e] * density_[e] * W / 4.0;  // lumped mass damping per corner
-    // Nominal tangent (always projected: Rayleigh damping built on it must stay passive).
-    PrincipalTangent Tnom;
+    // Nominal tangent (always projected: Rayleigh damping built on it must stay passive); the
+    // damping tangent is the nominal one, or with tangent damping the corrected one (projected).
+    PrincipalTangent Tnom, Tdamp;
     Mat3 Pd_hat = Mat3::Zero();  // damping stress per unit alpha_K, principal frame
     if (need_nominal || (project_psd && !has_corr)) {
       Tnom = principal_tangent(s, Pn, dPn, true);
-      Pd_hat = Tnom.apply(U.transpose() * st.Fdot[e] * V);
+      Tdamp = corr_damp ? principal_tangent(s, Ph, dPn + corr.d_dFh[e], true) : Tnom;
+      Pd_hat = Tdamp.apply(U.transpose() * st.Fdot[e] * V);
     }
     if (flags & kForce) {
       Mat3 Phat = aK * Pd_hat;
@@ -226,7 +230,7 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
         st.D[e] = De;
         continue;
       }
-      PrincipalTangent Td = Tnom;
+      PrincipalTangent Td = Tdamp;
       Td.diag *= aK;
       Td.a *= aK;
       Td.b *= aK;

@@ -31,8 +31,10 @@ struct ElementState {
   VecX alpha_M;        ///< (#T) effective mass-damping coefficient (1/s)
   std::vector<Eigen::Matrix<double, 12, 1>> f;  ///< element internal force (elastic + damping)
   std::vector<Mat12> K;  ///< element stiffness -df/dx (elastic, no damping term derivative)
-  std::vector<Mat12> D;  ///< element damping -df/dv (alpha_K K_nominal + correction rate part)
-  std::vector<Eigen::Matrix<double, 12, 1>> Kv;  ///< K_nominal,e v_e (for damping fits)
+  std::vector<Mat12> D;  ///< element damping -df/dv (alpha_K K_damp + correction rate part)
+  /// K_e v_e with the tangent alpha_K multiplies (K_nominal; the corrected tangent when the
+  /// correction has tangent damping), for damping fits
+  std::vector<Eigen::Matrix<double, 12, 1>> Kv;
 };
 
 enum EvalFlags { kForce = 1, kStiffness = 2, kDamping = 4, kNominalKv = 8 };
@@ -73,7 +75,8 @@ class Model {
   SpMat damping_matrix(const MatX3& x, const MatX3& v) const;
   /// Force map B (3#V x 3#T): f_elastic = B ph for principal stresses ph, at positions x.
   SpMat force_map(const MatX3& x) const;
-  /// Stiffness-damping map (3#V x #T): column e = -K_nominal,e v_e (force per unit alpha_K).
+  /// Stiffness-damping map (3#V x #T): column e = -K_e v_e (force per unit alpha_K), K the
+  /// projected nominal tangent, or the corrected one when the correction has tangent damping.
   SpMat stiffness_damping_map(const MatX3& x, const MatX3& v) const;
   /// Mass-damping map (3#V x #T): column e = -M_e v_e (force per unit alpha_M).
   SpMat mass_damping_map(const MatX3& v) const;

@@ -34,11 +34,15 @@ struct NormalEquations {
 
 /// Accumulate the normal equations over frames j of X, V, FC (each frames*#V x 3, stacked).
 /// current may be null (no current correction). phi: (3#V x r) or empty (then `free_dofs`,
-/// length 3#V, selects the rows kept). damping: include the alpha_K unknowns.
+/// length 3#V, selects the rows kept). damping: include the alpha_K unknowns. tangent_damping:
+/// the fitted correction has tangent damping (correction.hpp; then so must `current`'s): the
+/// elastic features also carry their share of the stiffness-proportional damping force,
+/// linearised at the current model (see the .cpp).
 NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model* current,
                                      const MatX3& X, const MatX3& V, const MatX3& FC,
                                      const MatX& phi, const Eigen::Matrix<bool, Eigen::Dynamic, 1>& free_dofs,
-                                     const RbfFeatures& rbf, bool damping);
+                                     const RbfFeatures& rbf, bool damping,
+                                     bool tangent_damping = false);
 
 /// Principal stretches (frames*#T x 3) of every frame of X (frames*#V x 3), frame-major.
 MatX3 principal_stretches(const fem::Model& model, const MatX3& X);

@@ -56,6 +56,10 @@ static CorrectionOutput evaluate_checked(const Correction& c, const py::array& F
 
 void define_correction(py::module_& m) {
   py::class_<Correction, std::shared_ptr<Correction>>(m, "Correction")
+      .def_property("tangent_damping", &Correction::tangent_damping, &Correction::set_tangent_damping,
+                    "When True, the Model's stiffness-proportional Rayleigh damping acts on the "
+                    "corrected tangent (nominal + this correction, projected to PSD) instead of the "
+                    "nominal one. Default False.")
       .def(
           "evaluate",
           [](const Correction& c, const py::array& Fh, const py::array& Fhdot) {

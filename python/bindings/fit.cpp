@@ -30,7 +30,7 @@ void define_fit(py::module_& m) {
       [](std::shared_ptr<const fem::Model> nominal, std::shared_ptr<const fem::Model> current,
          const py::array& X, const py::array& V, const py::array& FC, const py::object& phi,
          const py::object& free_dofs, const py::array& centers, double epsilon,
-         const py::object& lower, const py::object& upper, bool damping) {
+         const py::object& lower, const py::object& upper, bool damping, bool tangent_damping) {
         if (!nominal) throw InvalidInput("nominal model is None");
         const long n = nominal->mesh().num_vertices();
         const MatX3 x = as_stacked(X, "X", n), v = as_stacked(V, "V", n),
@@ -59,17 +59,20 @@ void define_fit(py::module_& m) {
         {
           py::gil_scoped_release r;
           ne = learning::fit_normal_equations(*nominal, current.get(), x, v, fc, Phi, keep, rbf,
-                                              damping);
+                                              damping, tangent_damping);
         }
         return py::make_tuple(ne.N, ne.rhs, ne.yy, ne.frames);
       },
       py::arg("nominal"), py::arg("current"), py::arg("X"), py::arg("V"), py::arg("FC"),
       py::arg("phi"), py::arg("free_dofs"), py::arg("centers"), py::arg("epsilon"),
       py::arg("lower") = py::none(), py::arg("upper") = py::none(), py::arg("damping") = true,
+      py::arg("tangent_damping") = false,
       "Normal equations (N (p,p), rhs (p,), y^T y, frames) of the correction fit over all frames "
       "of X, V, FC (frames, #V, 3); current: model with the current correction or None; phi "
       "(3#V, r) basis or None (then free_dofs, bool (3#V,), selects rows). See "
-      "cpp/learning/fit_normal_equations.hpp for the unknown layout.");
+      "cpp/learning/fit_normal_equations.hpp for the unknown layout. tangent_damping: the fitted "
+      "correction's elastic part also enters the stiffness-proportional damping (the current "
+      "model's correction must then have tangent_damping on).");
   m.def(
       "principal_stretches",
       [](std::shared_ptr<const fem::Model> model, const py::array& X) {

@@ -106,7 +106,9 @@ PERMUTATIONS = np.array(list(itertools.permutations(range(3))))
 class RbfParams:
     """Parameters of an RbfCorrection (see module docstring); shapes (c,3), (c,3), (3,3), (3,),
     (c,) or (0,), scalar, scalar; clamp: clamp the kernel input to `box()` (False for models
-    saved before the clamp existed)."""
+    saved before the clamp existed); tangent_damping: the stiffness-proportional Rayleigh
+    damping acts on the corrected tangent (`_core` Correction.tangent_damping; False for models
+    saved before it existed)."""
 
     centers: np.ndarray
     weights: np.ndarray
@@ -116,6 +118,7 @@ class RbfParams:
     alpha_bias: float = 0.0
     epsilon: float = 0.05
     clamp: bool = True
+    tangent_damping: bool = False
 
     def box(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(lower, upper) (3,) each: the centres' bounding box widened by epsilon, or
@@ -124,16 +127,18 @@ class RbfParams:
 
     def correction(self):
         lo, hi = self.box()
-        return _core.correction.RbfCorrection(
+        c = _core.correction.RbfCorrection(
             np.ascontiguousarray(self.centers, float), np.ascontiguousarray(self.weights, float),
             np.asarray(self.linear, float), np.asarray(self.bias, float),
             np.asarray(self.alpha_weights, float), float(self.alpha_bias), float(self.epsilon),
             lower=lo, upper=hi, isotropic_width=RBF_ISOTROPIC_WIDTH)
+        c.tangent_damping = bool(self.tangent_damping)
+        return c
 
     def to_arrays(self, prefix: str = "rbf_") -> dict:
         return {prefix + k: np.asarray(getattr(self, k), float) for k in
                 ("centers", "weights", "linear", "bias", "alpha_weights", "alpha_bias", "epsilon",
-                 "clamp")}
+                 "clamp", "tangent_damping")}
 
     @classmethod
     def from_arrays(cls, d, prefix: str = "rbf_") -> "RbfParams":
@@ -142,7 +147,9 @@ class RbfParams:
                       ("centers", "weights", "linear", "bias", "alpha_weights")},
                    alpha_bias=float(np.asarray(d[prefix + "alpha_bias"])),
                    epsilon=float(np.asarray(d[prefix + "epsilon"])),
-                   clamp=bool(np.asarray(d[prefix + "clamp"])) if prefix + "clamp" in keys else False)
+                   clamp=bool(np.asarray(d[prefix + "clamp"])) if prefix + "clamp" in keys else False,
+                   tangent_damping=(bool(np.asarray(d[prefix + "tangent_damping"]))
+                                    if prefix + "tangent_damping" in keys else False))
 
 
 def centers_box(centers: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
@@ -275,6 +282,7 @@ class FitSystem:
     seed: int
     max_penalty_samples: int
     transform: np.ndarray | None = None
+    tangent_damping: bool = False
     _penalty: np.ndarray | None = None
     _edge: np.ndarray | None = None
 
@@ -315,13 +323,15 @@ class FitSystem:
 def fit_system(nominal_model, frames: list, num_centers: int = 24, current_model=None,
                damping: bool = True, seed: int = 0, stride: int = 1, centers=None,
                clamp: bool = True, max_penalty_samples: int = 4000,
-               symmetric: bool = False) -> FitSystem:
+               symmetric: bool = False, tangent_damping: bool = False) -> FitSystem:
     """Assemble the fit's normal equations over all frames (one C++ call per recording) for
     the centres `centers` = (C, eps) or k-means centres of the fitted stretches (`seed`).
     symmetric: the permutation-equivariant RBF (module docstring): k-means over the sorted
     stretches, the centres (given or not) reduced to orbit representatives and expanded to
     their 6 permutations (symmetric_expansion), and the normal equations reduced to the
-    symmetric parameters, T^T N T (`FitSystem.transform` = T).
+    symmetric parameters, T^T N T (`FitSystem.transform` = T). tangent_damping: fit a
+    correction whose elastic part also enters the stiffness-proportional damping (module
+    docstring, "Tangent damping"; current_model's correction must have it too).
     Arguments as :func:`fit_correction`."""
     if not frames:
         raise ValueError("fit_correction: no frames")
@@ -353,7 +363,8 @@ def fit_system(nominal_model, frames: list, num_centers: int = 24, current_model
                 free[(3 * np.asarray(fr.constrained)[:, None] + np.arange(3)).ravel()] = False
         Nf, rf, yf, cf = _core.fit.normal_equations(
             nominal_model, current_model, np.asarray(fr.X)[::stride], np.asarray(fr.V)[::stride],
-            np.asarray(fr.fc)[::stride], fr.phi, free, C, eps, box[0], box[1], damping)
+            np.asarray(fr.fc)[::stride], fr.phi, free, C, eps, box[0], box[1], damping,
+            tangent_damping)
         N += Nf
         rhs += rf
         yy += yf
@@ -362,7 +373,7 @@ def fit_system(nominal_model, frames: list, num_centers: int = 24, current_model
         N, rhs = T.T @ N @ T, T.T @ rhs
     modulus = float(np.median(2 * np.asarray(nominal_model.mu) + np.asarray(nominal_model.lam)))
     return FitSystem(N, rhs, float(yy), int(count), C, float(eps), box, clamp, damping, samples,
-                     modulus, seed, max_penalty_samples, T)
+                     modulus, seed, max_penalty_samples, T, bool(tangent_damping))
 
 
 def solve_fit(system: FitSystem, ridge: float = 1e-6, smooth: float = 0.0,
@@ -407,7 +418,7 @@ def solve_fit(system: FitSystem, ridge: float = 1e-6, smooth: float = 0.0,
         wa, a0 = theta[ne:ne + c].copy(), float(theta[ne + c])
     else:
         wa, a0 = np.zeros(0), 0.0
-    params = RbfParams(C, W, A, bias, wa, a0, eps, s.clamp)
+    params = RbfParams(C, W, A, bias, wa, a0, eps, s.clamp, s.tangent_damping)
     info = {"residual_ratio": float(np.sqrt(res2 / yy)) if yy > 0 else 0.0, "frames": s.count,
             "parameters": p, "centers": c, "epsilon": eps, "smooth": smooth, "linear": linear,
             "edge": edge, "symmetric": T is not None}

@@ -153,6 +153,7 @@ class LearnOptions:
     retry_rejected: bool = True
     start_pose: str = "held"
     symmetric: bool = True
+    tangent_damping: bool = False
 
     def __post_init__(self):
         if self.iterations < 1 or self.modes < 1 or self.centers < 1:
@@ -284,11 +285,11 @@ def _blend(a: RbfParams | None, b: RbfParams, t: float) -> RbfParams:
     """(1 - t) a + t b for corrections on the same centres (a None: the zero correction)."""
     if a is None:
         a = RbfParams(b.centers, np.zeros_like(b.weights), np.zeros((3, 3)), np.zeros(3),
-                      np.zeros_like(b.alpha_weights), 0.0, b.epsilon)
+                      np.zeros_like(b.alpha_weights), 0.0, b.epsilon, b.clamp, b.tangent_damping)
     mix = lambda x, y: (1 - t) * np.asarray(x) + t * np.asarray(y)  # noqa: E731
     return RbfParams(b.centers, mix(a.weights, b.weights), mix(a.linear, b.linear), mix(a.bias, b.bias),
                      mix(a.alpha_weights, b.alpha_weights), float(mix(a.alpha_bias, b.alpha_bias)),
-                     b.epsilon)
+                     b.epsilon, b.clamp, b.tangent_damping)
 
 
 class Learner:
@@ -592,7 +593,7 @@ class Learner:
         system = fit_system(self.nominal, frames, opt.centers,
                             current_model=current_model if params is not None else None,
                             damping=opt.damping, seed=opt.seed + k, centers=centers,
-                            symmetric=opt.symmetric)
+                            symmetric=opt.symmetric, tangent_damping=opt.tangent_damping)
         # (ridge, smoothing, (linear, edge) extrapolation penalties), in the order of the options
         pairs = [(r, s, x) for x in opt.extrapolation for s in opt.smoothing for r in opt.ridges]
         planned = len(pairs)
