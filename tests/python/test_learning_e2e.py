@@ -69,3 +69,14 @@ def test_cli_writes_model_metrics_and_plots(case, tmp_path):
     assert np.all(np.isfinite(corr.evaluate(Fh, np.zeros_like(Fh))[0]))
     # A non-empty run folder is not overwritten silently.
     assert cli.main(["learn", str(case), "--out", str(out), "--quiet"]) == 2
+
+
+def test_learning_with_tangent_damping_cuts_held_out_error_and_saves_the_flag(case, tmp_path):
+    sc = load_scene(case)
+    opts = LearnOptions(iterations=2, modes=12, centers=12, ridges=(1e-6,), tangent_damping=True)
+    res = learn(sc, tmp_path / "td", opts, log=None)
+    nominal = res["nominal"]["test"]["max_error_pct"]
+    learned = res["final"]["test"]["max_error_pct"]
+    assert learned < nominal / 8, (nominal, learned)
+    assert res["params"].tangent_damping
+    assert res["params"].correction().tangent_damping

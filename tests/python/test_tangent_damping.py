@@ -166,3 +166,15 @@ def test_fit_system_carries_the_flag_into_the_fitted_params():
         assert p.tangent_damping is on and p.correction().tangent_damping is on
         q = RbfParams.from_arrays(p.to_arrays())
         assert q.tangent_damping is on
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_saved_runs_keep_the_flag_for_the_rbf_and_the_mlp(tmp_path, on):
+    from matlearn.learning.io import load_model, save_model
+
+    rng = np.random.default_rng(0)
+    mlp = {"layers": [(rng.normal(size=(4, 6)), np.zeros(4))], "in_mean": np.zeros(6),
+           "in_std": np.ones(6), "out_mean": np.zeros(4), "out_std": np.ones(4)}
+    save_model(tmp_path, RbfParams(np.ones((1, 3)), np.zeros((1, 3)), tangent_damping=on), mlp)
+    assert load_model(tmp_path, "rbf").tangent_damping is on
+    assert load_model(tmp_path, "mlp").tangent_damping is on

@@ -31,7 +31,7 @@ def run(args) -> int:
     opts = LearnOptions(iterations=args.iterations, lam=args.lam, modes=args.modes,
                         centers=args.centers, seed=args.seed,
                         refresh_correspondences=args.refresh_correspondences,
-                        extrapolation=EXTRAPOLATION_WEIGHTS)
+                        extrapolation=EXTRAPOLATION_WEIGHTS, tangent_damping=args.tangent_damping)
     t0 = time.time()
     log = (lambda *a: print(*a, file=sys.stderr, flush=True)) if not args.quiet else None
     from ..learning.start import learn_from
@@ -98,6 +98,10 @@ def register(subparsers) -> None:
                         "worse than that fit), or best: learn from both (RUN/start_nominal, "
                         "RUN/start_baseline) and keep the lower learned train error (twice the time)")
     p.add_argument("--no-distill", action="store_true", help="skip the MLP distillation")
+    p.add_argument("--tangent-damping", action="store_true",
+                   help="the stiffness-proportional Rayleigh damping acts on the corrected tangent "
+                        "(alpha_K K(nominal + correction)) instead of the nominal one; see README, "
+                        "Learning")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--refresh-correspondences", type=int, default=0, metavar="N",
                    help="point clouds: rounds of re-estimating the correspondences at the space-time "

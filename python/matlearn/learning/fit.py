@@ -81,6 +81,17 @@ tests/python/test_fit_symmetric.py), and the blend of RBF_ISOTROPIC_WIDTH is not
 re-learned sphere_compression: 43/38 steps at the limit, 25/41 factorisations). The
 normal equations are assembled for the 6c centres and reduced, T^T N T. Cost: 6x the kernels per
 element in every force evaluation (cpp/correction evaluates them as vectorised columns).
+
+Tangent damping (`tangent_damping`, LearnOptions.tangent_damping, off by default). Rayleigh damping
+alpha_K K on a corrected material can use the nominal tangent (the default: (alpha_K + dalpha)
+K_psd(nominal)) or the corrected one, (alpha_K + dalpha) K_psd(nominal + correction), as a truth
+whose own tangent is edited does (the learning table's spheres). The latter is bilinear in the
+elastic and damping weights and the PSD projection is not linear; the normal equations
+(cpp/learning/fit_normal_equations.cpp) linearise it at the current model: the elastic features
+damp with the current alpha_K + dalpha through the derivative of the projection at the current
+total tangent, the damping columns act on the current corrected tangent, and the data lose the
+difference, so the design equals the model's force at the current weights and errs to second
+order around them (tests/python/test_tangent_damping.py). Measured on the spheres (README).
 """
 from __future__ import annotations
 
