@@ -122,3 +122,44 @@ def test_auto_start_moves_only_the_recording_caught_mid_swing(tmp_path):
     r_auto = auto.residual(model, [auto.train[1]])
     r_rest = rest.residual(model, [rest.train[1]])
     assert float(r_auto @ r_auto) < 0.1 * float(r_rest @ r_rest)
+
+
+def test_start_decision_survives_a_failing_held_pose(tmp_path, monkeypatch):
+    """The moving start's pose is held at the best scale; where that static solve fails the
+    nominal stiffness is tried, and where both fail the recording starts at rest: the start
+    decision never stops a diagnosis (independent seed 12: Newton failed at a 0.3x scale)."""
+    from matlearn.diagnosis import problem as prob
+
+    bar = meshes.bar(L, W, W, (5, 2, 2))
+    mat, dmp = Material("corotated", E0, 0.4, 1000.0), Damping(0, 0.002)
+    tip = [[0.75 * L, -1, -1], [1, 1, 1]]
+    load = {"box": tip, "force": [0, -0.25, 0.1]}
+    scene = make_case(tmp_path, "cut", bar, mat, dmp, bar, mat, dmp, [[-1, -1, -1], [1e-6, 1, 1]],
+                      [Motion("release", "train", 0.08, load=load)], marker_fraction=0.5, noise=2e-5, seed=0)
+    path = scene.parent / "train_0.npz"
+    rec = load_recording(path)
+    speed = np.linalg.norm(np.diff(rec.markers, axis=0), axis=2).mean(axis=1)
+    k = int(np.argmax(speed[:40]))
+    save_recording(Recording(times=rec.times[k:], marker_rest=rec.marker_rest, markers=rec.markers[k:]), path)
+    real = prob.initial_velocity
+    calls = []
+
+    def failing_once(scene_, model, *a, **kw):
+        calls.append(float(np.median(model.mu)))
+        if len(calls) == 1:
+            raise RuntimeError("static_solve: Newton did not converge at load step 1")
+        return real(scene_, model, *a, **kw)
+
+    monkeypatch.setattr(prob, "initial_velocity", failing_once)
+    auto = Problem(scene, estimate_velocity="auto")
+    assert auto.start_velocity(auto.train[0]) is not None  # the nominal stiffness held it
+    info = auto.start_info(auto.train[0])
+    assert info["moving"] and len(info["velocity_failures"]) == 1
+
+    def always(*a, **kw):
+        raise RuntimeError("static_solve: Newton did not converge")
+
+    monkeypatch.setattr(prob, "initial_velocity", always)
+    auto = Problem(scene, estimate_velocity="auto")
+    assert auto.start_velocity(auto.train[0]) is None
+    assert not auto.start_info(auto.train[0])["moving"]

@@ -45,7 +45,7 @@ NESTS = {
 
 
 # per-recording start decision (problem.start_in_motion); False: every recording starts at rest
-START_DECISION = False
+START_DECISION = True
 
 
 def _printer(progress):

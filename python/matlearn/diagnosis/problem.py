@@ -379,7 +379,18 @@ def start_in_motion(problem, rec: Recording, frames: int = 7, scales=START_SCALE
     info.update(rss_rest=rss_rest, scale_rest=s_rest)
     if not np.any(np.nan_to_num(mv)):
         return None, info
-    v = initial_velocity(scene, model_at(s_rest), rec, emb, x0, frames, marker_v=mv)
+    # the velocity's pose is held at the best scale; where that static solve fails (a soft scale
+    # under a large first pose) at the nominal stiffness; where both fail the recording starts
+    # at rest (a start decision must never stop the diagnosis)
+    v = None
+    for s in dict.fromkeys((s_rest, 1.0)):
+        try:
+            v = initial_velocity(scene, model_at(s), rec, emb, x0, frames, marker_v=mv)
+            break
+        except RuntimeError as err:
+            info.setdefault("velocity_failures", []).append({"scale": float(s), "error": str(err)[:120]})
+    if v is None:
+        return None, info
     rss_moving, s_moving, _ = scan(v)
     noise = (track_noise(rec.markers) / size) ** 2 * 3 * int(seen.sum())
     moving = rss_rest - rss_moving >= START_EXPLAINED * max(rss_rest - noise, 0.0) and rss_moving < rss_rest
