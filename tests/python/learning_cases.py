@@ -23,6 +23,29 @@ def small_bar_case(folder):
                      [[-1, -1, -1], [1e-4, 1, 1]], motions, marker_fraction=0.5, seed=3)
 
 
+def released_from_bent_pose(sc, model, steps: int = 200):
+    """(X, Vel) (steps+1, #V, 3) of the cantilever of scene `sc` (length L) released from a bent
+    pose at rest, unforced, undriven and without gravity."""
+    n = sc.mesh.num_vertices
+    V = np.asarray(sc.mesh.vertices)
+    x0 = V.copy()
+    x0[:, 1] += 0.05 * (V[:, 0] / L) ** 2  # bent initial pose, at rest
+    x0[sc.fixed] = V[sc.fixed]
+    integ = _core.time.Integrator(model, sc.fixed, 1e-3, np.zeros(3), 30, 1e-12)
+    integ.set_state(x0, np.zeros((n, 3)))
+    return integ.simulate(steps, np.zeros((n, 3)), 1)
+
+
+def assert_energy_decays_from_a_bent_pose(sc, model, energy_scene, steps: int = 200):
+    """After :func:`released_from_bent_pose`, the energy (`nominal_energy` with `energy_scene`'s
+    law) never increases and decays by at least 10 %."""
+    X, Vel = released_from_bent_pose(sc, model, steps)
+    E = np.array([nominal_energy(energy_scene, model, x, v) for x, v in zip(X, Vel)])
+    assert E[0] > 0
+    assert np.all(np.diff(E) <= 1e-9 * E[0]), np.diff(E).max()
+    assert E[-1] < 0.9 * E[0]
+
+
 def nominal_energy(sc, model, x, v) -> float:
     """Nominal elastic energy + kinetic energy (J) of state (x, v) of scene `sc` under `model`."""
     mu, lam = sc.material.lame(sc.mesh.num_tets)

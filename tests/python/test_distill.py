@@ -22,7 +22,7 @@ from matlearn.materials import Damping, Material
 from matlearn.scene import Scene
 
 from isotropy_checks import check_blend, coincident_states, fd_rows
-from learning_cases import nominal_energy
+from learning_cases import nominal_energy, released_from_bent_pose
 
 
 def _inputs(n, seed):
@@ -281,14 +281,7 @@ def test_mlp_damping_is_passive_energy_never_increases():
     mlp = _core.correction.MlpCorrection(ex["layers"][:2] + [(W2, b2)], np.r_[np.ones(3), np.zeros(3)], in_std,
                                          np.r_[0, 0, 0, -0.002], np.r_[1, 1, 1, 0.01])
     model = sc.model(mlp)
-    n = sc.mesh.num_vertices
-    V = np.asarray(sc.mesh.vertices)
-    x0 = V.copy()
-    x0[:, 1] += 0.05 * (V[:, 0] / L) ** 2  # bent initial pose, at rest
-    x0[sc.fixed] = V[sc.fixed]
-    integ = _core.time.Integrator(model, sc.fixed, 1e-3, np.zeros(3), 30, 1e-12)
-    integ.set_state(x0, np.zeros((n, 3)))
-    X, Vel = integ.simulate(200, np.zeros((n, 3)), 1)
+    X, Vel = released_from_bent_pose(sc, model)
     dal = np.concatenate([np.asarray(mlp.evaluate(*model.principal_kinematics(x, v)[:2])[3]) for x, v in zip(X, Vel)])
     # alpha_K + dalpha (nominal alpha_K = 2 ms) really clamped at 0 somewhere, not everywhere.
     assert dal.min() < -0.004 and dal.max() > -0.002, (dal.min(), dal.max())
