@@ -136,6 +136,16 @@ Mat3 principal_stress_derivative(MaterialModel m, const Vec3& s, double mu, doub
   return Mat3::Zero();
 }
 
+namespace {
+
+/// Positive definite by its leading minors (the common case, where the projection clamps nothing).
+bool positive_definite(const Mat3& sym) {
+  const double m1 = sym(0, 0), m2 = sym(0, 0) * sym(1, 1) - sym(0, 1) * sym(0, 1);
+  return m1 > 0 && m2 > 0 && sym.determinant() > 0;
+}
+
+}  // namespace
+
 PrincipalTangent principal_tangent(const Vec3& s, const Vec3& Ph, const Mat3& dPh_in,
                                    bool project_psd) {
   PrincipalTangent T;
@@ -144,9 +154,7 @@ PrincipalTangent principal_tangent(const Vec3& s, const Vec3& Ph, const Mat3& dP
   T.diag = dPh_in;
   if (project_psd) {
     const Mat3 sym = 0.5 * (dPh_in + dPh_in.transpose());
-    // Positive definite (leading minors > 0, the common case): nothing to clamp.
-    const double m1 = sym(0, 0), m2 = sym(0, 0) * sym(1, 1) - sym(0, 1) * sym(0, 1);
-    if (m1 > 0 && m2 > 0 && sym.determinant() > 0) {
+    if (positive_definite(sym)) {
       T.diag = sym;
     } else {
       Eigen::SelfAdjointEigenSolver<Mat3> es(sym);
@@ -175,6 +183,36 @@ PrincipalTangent principal_tangent(const Vec3& s, const Vec3& Ph, const Mat3& dP
     T.a[p] = a;
     T.b[p] = b;
   }
+  return T;
+}
+
+ProjectedTangentDerivative::ProjectedTangentDerivative(const Vec3& s, const Vec3& Ph, const Mat3& dPh)
+    : s_(s) {
+  const Mat3 sym = 0.5 * (dPh + dPh.transpose());
+  clamped_ = !positive_definite(sym);
+  if (clamped_) {
+    Eigen::SelfAdjointEigenSolver<Mat3> es(sym);
+    Q_ = es.eigenvectors();
+    const Vec3 l = es.eigenvalues();
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) {
+        const double fi = std::max(l[i], 0.0), fj = std::max(l[j], 0.0);
+        G_(i, j) = std::abs(l[i] - l[j]) > 1e-12 * (std::abs(l[i]) + std::abs(l[j]) + 1e-300)
+                       ? (fi - fj) / (l[i] - l[j])
+                       : (l[i] > 0 ? 1.0 : 0.0);
+      }
+  }
+  const PrincipalTangent T = principal_tangent(s, Ph, dPh, false);
+  keep_plus_ = ((T.a + T.b).array() > 0).cast<double>();
+  keep_minus_ = ((T.a - T.b).array() > 0).cast<double>();
+}
+
+PrincipalTangent ProjectedTangentDerivative::operator()(const Vec3& dP, const Mat3& ddP) const {
+  PrincipalTangent T = principal_tangent(s_, dP, 0.5 * (ddP + ddP.transpose()), false);
+  if (clamped_) T.diag = Q_ * G_.cwiseProduct(Q_.transpose() * T.diag * Q_) * Q_.transpose();
+  const Vec3 plus = (T.a + T.b).cwiseProduct(keep_plus_), minus = (T.a - T.b).cwiseProduct(keep_minus_);
+  T.a = 0.5 * (plus + minus);
+  T.b = 0.5 * (plus - minus);
   return T;
 }
 

@@ -64,6 +64,25 @@ struct PrincipalTangent {
 PrincipalTangent principal_tangent(const Vec3& s, const Vec3& Ph, const Mat3& dPh,
                                    bool project_psd);
 
+/// Derivative of the projected tangent principal_tangent(s, Ph, dPh, true) at a total (Ph, dPh),
+/// as a linear map of a direction (dP, ddP): the pair blocks [[a b][b a]] keep the change of each
+/// eigenvalue a +- b that is positive at the total (a clamped one stays 0); the principal block,
+/// where principal_tangent clamps it, changes by the Daleckii-Krein formula Q (G o Q^T dS Q) Q^T,
+/// G_ij the divided differences of max(lambda, 0). Used to linearise damping on a projected
+/// corrected tangent (learning/fit_normal_equations.cpp).
+class ProjectedTangentDerivative {
+ public:
+  ProjectedTangentDerivative(const Vec3& s, const Vec3& Ph, const Mat3& dPh);
+  /// The projected tangent's change in the direction (dP, ddP) (ddP symmetrised here).
+  PrincipalTangent operator()(const Vec3& dP, const Mat3& ddP) const;
+
+ private:
+  Vec3 s_;
+  bool clamped_ = false;  ///< principal_tangent clamps the principal block at the total
+  Mat3 Q_ = Mat3::Identity(), G_ = Mat3::Ones();
+  Vec3 keep_plus_, keep_minus_;  ///< 1 where a + b (a - b) of a pair is positive at the total
+};
+
 /// dP/dF (9 x 9, acting on column-major vec(F)) of an isotropic law from its principal data,
 /// following Teran et al. 2005 / Xu et al. 2015 with the repeated-stretch limits.
 /// `dPh` is dPh/ds (3x3); if `project_psd`, each principal block is clamped to be PSD.

@@ -7,7 +7,6 @@
 
 namespace matlearn::fem {
 
-using Vec12 = Eigen::Matrix<double, 12, 1>;
 using Mat9 = Eigen::Matrix<double, 9, 9>;
 using Mat9x12 = Eigen::Matrix<double, 9, 12>;
 
@@ -115,6 +114,9 @@ void element_matrix(const Mat9& A, const PrincipalTangent& T, double W, Mat12& o
     for (int l = 0; l < 3; ++l) out(r, l) = -(out(r, 3 + l) + out(r, 6 + l) + out(r, 9 + l));
 }
 
+
+}  // namespace
+
 /// Vertex forces -W P Bm^T of a tet (12), vertex 0 first, for the world stress P.
 Vec12 element_forces(const Mat3& P, const Mat3& Bm, double W) {
   const Mat3 H = -W * P * Bm.transpose();  // column a: force on vertex a+1
@@ -125,8 +127,6 @@ Vec12 element_forces(const Mat3& P, const Mat3& Bm, double W) {
   f.segment<3>(0) = -(H.col(0) + H.col(1) + H.col(2));
   return f;
 }
-
-}  // namespace
 
 void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd,
                      ElementState& st) const {
@@ -161,7 +161,7 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   const bool corr_damp = has_corr && correction_->tangent_damping();
   if (has_corr) {
     // Force-only evaluations (residuals, chord steps) need no correction Jacobians.
-    if ((flags & (kStiffness | kDamping)) || (corr_damp && (flags & (kForce | kNominalKv))))
+    if ((flags & (kStiffness | kDamping)) || (corr_damp && (flags & (kForce | kDampingKv))))
       correction_->evaluate(st.Fh, st.Fhdot, corr);
     else
       correction_->evaluate_values(st.Fh, st.Fhdot, corr);
@@ -174,8 +174,8 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
   if (flags & kForce) st.f.resize(m);
   if (flags & kStiffness) st.K.resize(m);
   if (flags & kDamping) st.D.resize(m);
-  if (flags & kNominalKv) st.Kv.resize(m);
-  const bool need_nominal = flags & (kForce | kDamping | kNominalKv);
+  if (flags & kDampingKv) st.Kv.resize(m);
+  const bool need_nominal = flags & (kForce | kDamping | kDampingKv);
 #pragma omp parallel for schedule(dynamic, 256) if (m >= kParallelMinTets)
   for (int e = 0; e < m; ++e) {
     const Vec3 s = st.Fh.row(e).transpose();
@@ -211,7 +211,7 @@ void Model::evaluate(const MatX3& x, const MatX3& v, int flags, bool project_psd
       for (int a = 0; a < 4; ++a) f.segment<3>(3 * a) -= cm * v.row(T(e, a)).transpose();
       st.f[e] = f;
     }
-    if (flags & kNominalKv) st.Kv[e] = -element_forces(U * Pd_hat * V.transpose(), Bm, W);
+    if (flags & kDampingKv) st.Kv[e] = -element_forces(U * Pd_hat * V.transpose(), Bm, W);
     if (!(flags & (kStiffness | kDamping))) continue;
     const Mat9 A = principal_shape_columns(U, Bm * V);
     if (flags & kStiffness) {
@@ -408,8 +408,14 @@ SpMat Model::force_map(const MatX3& x) const {
 
 SpMat Model::stiffness_damping_map(const MatX3& x, const MatX3& v) const {
   ElementState st;
-  evaluate(x, v, kNominalKv, true, st);
-  return element_columns(mesh_->tets(), 3 * x.rows(), 1,
+  evaluate(x, v, kDampingKv, true, st);
+  return stiffness_damping_map(st);
+}
+
+SpMat Model::stiffness_damping_map(const ElementState& st) const {
+  if (int(st.Kv.size()) != mesh_->num_tets())
+    throw InvalidInput("stiffness_damping_map: the state was evaluated without kDampingKv");
+  return element_columns(mesh_->tets(), 3 * mesh_->num_vertices(), 1,
                          [&](int e, int, int a) { return -st.Kv[e][a]; });
 }
 

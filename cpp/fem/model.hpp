@@ -37,7 +37,10 @@ struct ElementState {
   std::vector<Eigen::Matrix<double, 12, 1>> Kv;
 };
 
-enum EvalFlags { kForce = 1, kStiffness = 2, kDamping = 4, kNominalKv = 8 };
+enum EvalFlags { kForce = 1, kStiffness = 2, kDamping = 4, kDampingKv = 8 };
+
+/// Vertex forces -W P Bm^T of a tet (12), vertex 0 first, for the world stress P.
+Vec12 element_forces(const Mat3& P, const Mat3& Bm, double W);
 
 /// A deformable body: mesh + per-element material + damping + optional learned correction.
 class Model {
@@ -78,6 +81,8 @@ class Model {
   /// Stiffness-damping map (3#V x #T): column e = -K_e v_e (force per unit alpha_K), K the
   /// projected nominal tangent, or the corrected one when the correction has tangent damping.
   SpMat stiffness_damping_map(const MatX3& x, const MatX3& v) const;
+  /// The same map from a state evaluated with kDampingKv.
+  SpMat stiffness_damping_map(const ElementState& st) const;
   /// Mass-damping map (3#V x #T): column e = -M_e v_e (force per unit alpha_M).
   SpMat mass_damping_map(const MatX3& v) const;
   /// Reduced tangents of the model *without* its correction at (x, v): Kr = Phi^T K Phi with the

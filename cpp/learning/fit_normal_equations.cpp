@@ -10,90 +10,29 @@ namespace matlearn::learning {
 namespace {
 
 /// Elastic kernels g_k(s) (extended beyond the box, RbfCorrection) and damping kernels
-/// phi_k(clamp(s)) for the rows of S (m x 3) -> (m x c) each.
-void kernels(const MatX3& S, const RbfFeatures& rbf, MatX& G, MatX& Pa) {
+/// phi_k(clamp(s)) for the rows of S (m x 3) -> (m x c) each; with Gd, the elastic kernels'
+/// gradients dg_k/ds_d too (Gd[d], m x c).
+void kernels(const MatX3& S, const RbfFeatures& rbf, MatX& G, MatX& Pa, MatX* Gd = nullptr) {
   const int m = S.rows(), c = rbf.centers.rows();
   const bool box = rbf.lower.size() == 3;
   G.resize(m, c);
   Pa.resize(m, c);
-  for (int e = 0; e < m; ++e) {
-    const Vec3 s = S.row(e).transpose();
-    const Vec3 sc = box ? Vec3(s.cwiseMax(rbf.lower).cwiseMin(rbf.upper)) : s;
-    for (int k = 0; k < c; ++k)
-      G(e, k) = correction::extended_kernel(s, sc, rbf.centers.row(k).transpose(), rbf.epsilon,
-                                            nullptr, &Pa(e, k));
-  }
-}
-
-/// Elastic kernel values g_k(s) (as kernels()) and their gradients dg_k/ds_d (Gd[d], m x c).
-void kernel_values_gradients(const MatX3& S, const RbfFeatures& rbf, MatX& G, MatX Gd[3]) {
-  const int m = S.rows(), c = rbf.centers.rows();
-  const bool box = rbf.lower.size() == 3;
-  G.resize(m, c);
-  for (int d = 0; d < 3; ++d) Gd[d].resize(m, c);
+  if (Gd)
+    for (int d = 0; d < 3; ++d) Gd[d].resize(m, c);
   for (int e = 0; e < m; ++e) {
     const Vec3 s = S.row(e).transpose();
     const Vec3 sc = box ? Vec3(s.cwiseMax(rbf.lower).cwiseMin(rbf.upper)) : s;
     for (int k = 0; k < c; ++k) {
       Vec3 g;
       G(e, k) = correction::extended_kernel(s, sc, rbf.centers.row(k).transpose(), rbf.epsilon,
-                                            &g, nullptr);
-      for (int d = 0; d < 3; ++d) Gd[d](e, k) = g[d];
+                                            Gd ? &g : nullptr, &Pa(e, k));
+      if (Gd)
+        for (int d = 0; d < 3; ++d) Gd[d](e, k) = g[d];
     }
   }
 }
 
 MatX3 frame_rows(const MatX3& A, int j, int n) { return A.middleRows(long(j) * n, n); }
-
-/// Derivative of the projected principal tangent principal_tangent(s, Ph, dPh, true) at a
-/// total (Ph, dPh), as a linear map of a direction (dP, ddP): the pair blocks [[a b][b a]] keep
-/// the change of each eigenvalue a +- b that is positive at the total (a clamped one stays 0);
-/// the principal block, when it is clamped, changes by the Daleckii-Krein formula
-/// Q (G o Q^T dS Q) Q^T with G_ij the divided differences of max(lambda, 0).
-class ProjectionDerivative {
- public:
-  ProjectionDerivative(const Vec3& s, const Vec3& Ph, const Mat3& dPh) : s_(s) {
-    const Mat3 sym = 0.5 * (dPh + dPh.transpose());
-    const double m1 = sym(0, 0), m2 = sym(0, 0) * sym(1, 1) - sym(0, 1) * sym(0, 1);
-    identity_ = m1 > 0 && m2 > 0 && sym.determinant() > 0;  // as principal_tangent: no clamp
-    if (!identity_) {
-      Eigen::SelfAdjointEigenSolver<Mat3> es(sym);
-      Q_ = es.eigenvectors();
-      const Vec3 l = es.eigenvalues();
-      for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) {
-          const double fi = std::max(l[i], 0.0), fj = std::max(l[j], 0.0);
-          G_(i, j) = std::abs(l[i] - l[j]) > 1e-12 * (std::abs(l[i]) + std::abs(l[j]) + 1e-300)
-                         ? (fi - fj) / (l[i] - l[j])
-                         : (l[i] > 0 ? 1.0 : 0.0);
-        }
-    }
-    const PrincipalTangentPairs t = pairs(fem::principal_tangent(s, Ph, dPh, false));
-    keep_plus_ = (t.plus.array() > 0).cast<double>();
-    keep_minus_ = (t.minus.array() > 0).cast<double>();
-  }
-  /// The projected tangent's change in the direction (dP, ddP) (ddP symmetrised here).
-  fem::PrincipalTangent operator()(const Vec3& dP, const Mat3& ddP) const {
-    fem::PrincipalTangent T = fem::principal_tangent(s_, dP, 0.5 * (ddP + ddP.transpose()), false);
-    if (!identity_) T.diag = Q_ * G_.cwiseProduct(Q_.transpose() * T.diag * Q_) * Q_.transpose();
-    PrincipalTangentPairs t = pairs(T);
-    t.plus = t.plus.cwiseProduct(keep_plus_);
-    t.minus = t.minus.cwiseProduct(keep_minus_);
-    T.a = 0.5 * (t.plus + t.minus);
-    T.b = 0.5 * (t.plus - t.minus);
-    return T;
-  }
-
- private:
-  struct PrincipalTangentPairs {
-    Vec3 plus, minus;  // a + b, a - b per pair
-  };
-  static PrincipalTangentPairs pairs(const fem::PrincipalTangent& T) { return {T.a + T.b, T.a - T.b}; }
-  Vec3 s_;
-  bool identity_ = true;
-  Mat3 Q_ = Mat3::Identity(), G_ = Mat3::Ones();
-  Vec3 keep_plus_, keep_minus_;
-};
 
 /// Tangent damping (correction.hpp): the elastic features' damping forces. A feature f(s) in
 /// principal component k adds the stress f e_k; its unprojected principal tangent is linear in
@@ -105,14 +44,13 @@ class ProjectionDerivative {
 /// those 4 responses (columns 4e .. 4e+3); Fe (4#T x (c+3)) the matching alpha_K,e (f, grad f)
 /// of every feature, so R[k] Fe is the features' damping force.
 void tangent_damping_responses(const fem::Model& model, const fem::ElementState& st,
-                               const std::vector<ProjectionDerivative>& proj, SpMat R[3]) {
+                               const std::vector<fem::ProjectedTangentDerivative>& proj, SpMat R[3]) {
   const auto& mesh = model.mesh();
   const int n = mesh.num_vertices(), m = mesh.num_tets();
   const auto& T = mesh.tets();
   std::vector<Eigen::Triplet<double>> trip[3];
   for (int k = 0; k < 3; ++k) trip[k].reserve(size_t(m) * 48);
   for (int e = 0; e < m; ++e) {
-    const Vec3 s = st.Fh.row(e).transpose();
     const Mat3& U = st.U[e];
     const Mat3& V = st.V[e];
     const Mat3 Xhat = U.transpose() * st.Fdot[e] * V;
@@ -128,12 +66,8 @@ void tangent_damping_responses(const fem::Model& model, const fem::ElementState&
           dP(k, q - 1) += 0.5;
           dP(q - 1, k) += 0.5;
         }
-        const Mat3 Y = proj[e](P, dP).apply(Xhat);
-        const Mat3 H = -W * (U * Y * V.transpose()) * Bm.transpose();  // force on vertex a+1
-        const Vec3 f0 = -(H.col(0) + H.col(1) + H.col(2));
-        for (int a = 0; a < 4; ++a)
-          for (int d = 0; d < 3; ++d)
-            trip[k].emplace_back(3 * T(e, a) + d, 4 * e + q, a == 0 ? f0[d] : H(d, a - 1));
+        const Vec12 f = fem::element_forces(U * proj[e](P, dP).apply(Xhat) * V.transpose(), Bm, W);
+        for (int a = 0; a < 12; ++a) trip[k].emplace_back(3 * T(e, a / 3) + a % 3, 4 * e + q, f[a]);
       }
   }
   for (int k = 0; k < 3; ++k) {
@@ -214,28 +148,34 @@ NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model
   for (long j = 0; j < frames; ++j) {
     const MatX3 x = frame_rows(X, int(j), n), v = frame_rows(V, int(j), n);
     const MatX3 S = S_all.middleRows(j * m, m);
-    MatX Pe, P;
-    kernels(S, rbf, Pe, P);
+    MatX Pe, P, Gd[3];
+    kernels(S, rbf, Pe, P, tangent_damping ? Gd : nullptr);
     MatX feat(m, c + 3);
     feat.leftCols(c) = Pe.rowwise() - rest_phi.transpose();
     feat.rightCols(3) = S.array() - 1.0;
     const SpMat B = nominal.force_map(x);
     VecX y = Eigen::Map<const VecX>(FC.data() + j * n * 3, 3 * n);
-    if (current) y += current->forces(x, v) - nominal.forces(x, v);
     // Tangent damping: the damping force (alpha_K + dalpha) K(nominal + correction) v is
     // bilinear in (elastic, damping) weights; linearised at the current model (Gauss-Newton):
     // elastic features damp with the current effective alpha_K, the damping columns act on the
     // current corrected tangent, and y loses the cross term dalpha_cur K_corr,cur v counted twice.
+    // st / st_nom: the damping model's and the nominal model's state (forces and K v), once.
+    const fem::Model& damp_model = (tangent_damping && current) ? *current : nominal;
+    fem::ElementState st, st_nom;
+    if (tangent_damping) {
+      damp_model.evaluate(x, v, fem::kForce | fem::kDampingKv, true, st);
+      if (current) nominal.evaluate(x, v, fem::kForce | fem::kDampingKv, true, st_nom);
+    }
+    if (current)
+      y += tangent_damping ? VecX(current->gather_forces(st) - nominal.gather_forces(st_nom))
+                           : VecX(current->forces(x, v) - nominal.forces(x, v));
     SpMat R[3];
     MatX Fe;
-    const fem::Model& damp_model = (tangent_damping && current) ? *current : nominal;
     if (tangent_damping) {
-      fem::ElementState st, st_nom;
-      damp_model.evaluate(x, v, fem::kNominalKv, true, st);
       // the current correction's own stress and Jacobian (none at the first fit)
       correction::CorrectionOutput co;
       if (current) current->correction()->evaluate(st.Fh, st.Fhdot, co);
-      std::vector<ProjectionDerivative> proj;
+      std::vector<fem::ProjectedTangentDerivative> proj;
       proj.reserve(m);
       for (int e = 0; e < m; ++e) {
         const Vec3 sv = st.Fh.row(e).transpose();
@@ -245,14 +185,11 @@ NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model
         proj.emplace_back(sv, Vec3(st.Ph.row(e).transpose()), dPtot);
       }
       tangent_damping_responses(damp_model, st, proj, R);
-      MatX Gv, Gd[3];
-      kernel_values_gradients(st.Fh, rbf, Gv, Gd);
       Fe.resize(4 * m, c + 3);
       for (int e = 0; e < m; ++e) {
         const double aK = st.alpha_K[e];
-        Fe.row(4 * e).head(c) = aK * (Gv.row(e) - rest_phi.transpose());
-        Fe.row(4 * e).tail(3) = aK * (st.Fh.row(e).array() - 1.0);
-        for (int d = 0; d < 3; ++d) {
+        Fe.row(4 * e) = aK * feat.row(e);  // the features' values
+        for (int d = 0; d < 3; ++d) {  // and gradients
           Fe.row(4 * e + 1 + d).head(c) = aK * Gd[d].row(e);
           Fe.row(4 * e + 1 + d).tail(3) = aK * Vec3::Unit(d).transpose();
         }
@@ -263,25 +200,23 @@ NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model
         // K_tot,cur the projected corrected tangent, K_lin,cur the projection's derivative
         // applied to the current correction (the design's), so the linearisation is exact at
         // the current model also where the PSD projection is active.
-        nominal.evaluate(x, v, fem::kNominalKv, true, st_nom);
         const auto& mesh = nominal.mesh();
         const auto& T = mesh.tets();
         for (int e = 0; e < m; ++e) {
-          const Vec3 sv = st.Fh.row(e).transpose();
           const Mat3& U = st.U[e];
           const Mat3& Vm = st.V[e];
           const Mat3 J = 0.5 * (co.d_dFh[e] + co.d_dFh[e].transpose());
           const Mat3 Y = proj[e](co.dPh.row(e).transpose(), J).apply(U.transpose() * st.Fdot[e] * Vm);
-          const Mat3 H = -mesh.volumes()[e] * (U * Y * Vm.transpose()) * mesh.Bm()[e].transpose();
-          Eigen::Matrix<double, 12, 1> klin;  // K_lin v = -(vertex forces of Y)
-          klin.segment<3>(0) = H.col(0) + H.col(1) + H.col(2);
-          for (int a = 1; a < 4; ++a) klin.segment<3>(3 * a) = -H.col(a - 1);
-          const Eigen::Matrix<double, 12, 1> k =
+          const Vec12 klin = -fem::element_forces(U * Y * Vm.transpose(), mesh.Bm()[e], mesh.volumes()[e]);
+          const Vec12 k =
               -st_nom.alpha_K[e] * (st.Kv[e] - st_nom.Kv[e]) + st.alpha_K[e] * klin;
           for (int a = 0; a < 4; ++a) y.segment<3>(3 * T(e, a)) -= k.segment<3>(3 * a);
         }
       }
     }
+    // the damping columns: force per unit alpha_K change, on the damping model's tangent
+    const SpMat G = !damping ? SpMat() : tangent_damping ? damp_model.stiffness_damping_map(st)
+                                                         : nominal.stiffness_damping_map(x, v);
     if (basis) {
       const MatX Bt = SpMat(B.transpose()) * phi;  // (3m x r)
       for (int k = 0; k < 3; ++k) {
@@ -294,7 +229,6 @@ NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model
         }
       }
       if (damping) {
-        const SpMat G = damp_model.stiffness_damping_map(x, v);
         const MatX Gt = SpMat(G.transpose()) * phi;  // (m x r)
         MatX Q(m, c + 1);
         Q.leftCols(c) = P;
@@ -314,7 +248,6 @@ NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model
         if (tangent_damping) Dfull.middleCols(k * (c + 3), c + 3).noalias() += R[k] * Fe;
       }
       if (damping) {
-        const SpMat G = damp_model.stiffness_damping_map(x, v);
         MatX Q(m, c + 1);
         Q.leftCols(c) = P;
         Q.col(c).setOnes();

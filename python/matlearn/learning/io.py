@@ -41,8 +41,7 @@ def save_model(run_dir, rbf: RbfParams, mlp: dict | None = None, meta: dict | No
     with open(run / MODEL_NPZ, "wb") as f:
         np.savez(f, **arrays)
     info = {"format": "matlearn-model-1", "use": use, "has_mlp": mlp is not None,
-            "mlp_layers": len(mlp["layers"]) if mlp is not None else 0,
-            "tangent_damping": bool(rbf.tangent_damping), **(meta or {})}
+            "mlp_layers": len(mlp["layers"]) if mlp is not None else 0, **(meta or {})}
     (run / MODEL_JSON).write_text(json.dumps(info, indent=1))
     return run / MODEL_NPZ
 
@@ -80,9 +79,9 @@ def load_model(run_dir, kind: str | None = None):
     if kind == "rbf":
         return load_rbf(run).correction()
     if kind == "mlp":
-        # the MLP reproduces the RBF's (dPh, dalpha); how the damping acts is the run's choice
+        # the MLP reproduces the RBF's (dPh, dalpha); how the damping acts is the RBF's too
         c = mlp_correction(load_mlp(run))
-        c.tangent_damping = bool(info.get("tangent_damping", False))
+        c.tangent_damping = load_rbf(run).tangent_damping
         return c
     raise ValueError(f"kind must be 'rbf' or 'mlp', got {kind!r}")
 
