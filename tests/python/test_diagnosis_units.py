@@ -230,3 +230,40 @@ def test_debias_removes_the_discretisation_discrepancy_with_a_bounded_profiled_w
     other = SimpleNamespace()
     np.testing.assert_array_equal(fitting.debias(prob, r1, [other]), r1)
 
+
+
+def test_the_discretisation_offset_is_found_when_local_steps_from_zero_stall(tmp_path, monkeypatch):
+    """discretisation.discretisation measures the coarse mesh's stiffness offset against the
+    once-refined mesh. When the local fit from zero stalls (its steps rejected, as on a 288-tet
+    plate with a hole whose refined mesh matches a 0.45x stiffness), the grid of softer offsets
+    still finds it: the same offset, range and removed discrepancy as an unstalled fit."""
+    from diagnosis_cases import tiny_case
+
+    from matlearn.diagnosis import discretisation as disc
+    from matlearn.diagnosis.problem import Problem
+
+    path = tiny_case(tmp_path, "bar", E_scale=1.0, cells=(5, 1, 1))
+
+    def run():
+        P = Problem(path)
+        sc = P.scene
+        ctx = EffectContext(sc.mesh, sc.material, sc.damping, sc.fixed)
+        new, floors, theta, (b, _), _ = disc.discretisation(P, ctx, lambda m: None)
+        return theta, new.offset_reference, new.offset_range, float(b @ b)
+
+    theta, ref, rng_, bb = run()
+    assert ref < -0.05  # a coarse bar 1 tet across is clearly too stiff
+    real_refine = fitting.refine
+
+    def stalled(problem, ctx, names, theta0, *a, **kw):
+        if names == ["stiffness_scale"] and not theta0 and kw.get("target") is not None:
+            fit = real_refine(problem, ctx, names, theta0, *a, **dict(kw, iterations=0))
+            assert fit.params["stiffness_scale"][0] == 0.0
+            return fit
+        return real_refine(problem, ctx, names, theta0, *a, **kw)
+
+    monkeypatch.setattr(fitting, "refine", stalled)
+    theta2, ref2, rng2, bb2 = run()
+    assert ref2 == pytest.approx(ref, abs=0.02)
+    assert rng2[0] < rng2[1] and rng2 == pytest.approx(rng_, abs=0.03)
+    assert bb2 == pytest.approx(bb, rel=0.1)

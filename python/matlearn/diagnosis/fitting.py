@@ -195,14 +195,18 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
     return Fit("+".join(names), unpack(x), cost, dof, evals, hist)
 
 
-def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-2.4, -1.2, -0.6, -0.3, 0.3, 0.6, 1.2)) -> np.ndarray:
+def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-2.4, -1.2, -0.6, -0.3, 0.3, 0.6, 1.2),
+         target=None, recs=None) -> np.ndarray:
     """Best of the linearised estimate and a coarse grid of a 1-parameter family (simulated),
     as the start of the local refinement. The grid reaches large changes (a Poisson ratio
     0.24 lower, a stiffness 3x higher or 11x lower): an oscillation's phase makes the residual
-    multimodal, so a large true change is not reached by local steps from a small one."""
+    multimodal, so a large true change is not reached by local steps from a small one.
+    r0: the residual at theta = 0; target, recs: as in `refine`."""
     best = (float(r0 @ r0), np.zeros(1))
     for t in [float(np.asarray(theta_cheap).ravel()[0])] + list(grid):
-        r = residual_of(problem, ctx, {name: [t]})
+        r = residual_of(problem, ctx, {name: [t]}, recs)
+        if target is not None:
+            r = r - target
         c = float(r @ r)
         if c < best[0]:
             best = (c, np.array([t]))
