@@ -108,7 +108,7 @@ def test_ridge_search(case, tmp_path, monkeypatch, search, expect_fits, expect_r
     monkeypatch.setattr(loop_mod, "tangent_margin", lambda *a, **kw: 1.0)
     lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
                           LearnOptions(ridges=(1e-6, 1e-4, 1e-2), smoothing=(0.1,), ridge_search=search,
-                                       extrapolation=((0.0, 0.0),), **{"modes": 4}), log=None)
+                                       extrapolation=((0.0, 0.0),), extend=(), **{"modes": 4}), log=None)
     errors = {1e-6: 1.5, 1e-4: 0.9, 1e-2: 0.8}  # current error 1.0: 1e-4 is the first to improve
     monkeypatch.setattr(lr, "_train_error", lambda p, bound=np.inf: (errors[float(p.weights[0, 0])], [], []))
     p, info, _ = lr._update(None, None, None, 1.0, 0)
@@ -134,10 +134,43 @@ def test_unstable_candidates_escalate_the_smoothing_before_shortening(case, tmp_
     # Stable beyond the data only from smoothing 100 on (the blends of an unstable fit stay unstable).
     monkeypatch.setattr(loop_mod, "tangent_margin", lambda p, *a, **kw: float(p.weights[0, 0]) - 50.0)
     lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
-                          LearnOptions(smoothing=(0.1, 1.0), extrapolation=((0.0, 0.0),), modes=4), log=None)
+                          LearnOptions(smoothing=(0.1, 1.0), extrapolation=((0.0, 0.0),), extend=(), modes=4),
+                          log=None)
     simulated = []
     monkeypatch.setattr(lr, "_train_error", lambda p, bound=np.inf: (simulated.append(p) or 0.5, [], []))
     p, info, _ = lr._update(None, None, None, 1.0, 0)
     assert fits == [0.1, 1.0, 10.0, 100.0]
     assert info["smooth"] == 100.0 and info["update_step"] == 1.0 and len(simulated) == 1
     assert [c["tangent_margin"] for c in info["ridge_candidates"]] == [-49.9, -49.0, -40.0, 50.0]
+
+
+@pytest.mark.parametrize("optimum, expect_step, expect_tried",
+                         [(3.0, 2.0, [1.0, 2.0, 4.0]), (5.0, 4.0, [1.0, 2.0, 4.0]), (1.2, 1.0, [1.0, 2.0])])
+def test_longer_steps_along_an_accepted_update(case, tmp_path, monkeypatch, optimum, expect_step, expect_tried):
+    """LearnOptions.extend: after the full update lowers the train error, longer steps along it
+    (2x, 4x the update) are checked by forward simulation and the longest one that keeps
+    lowering the error is taken; one that does not ends the search."""
+    from matlearn.learning.fit import RbfParams
+
+    monkeypatch.setattr(loop_mod, "fit_system", lambda *a, **kw: None)
+    monkeypatch.setattr(loop_mod, "solve_fit",
+                        lambda system, ridge, smooth=0.0: (RbfParams(np.ones((1, 3)), np.ones((1, 3))),
+                                                           {"residual_ratio": 0.0}))
+    monkeypatch.setattr(loop_mod, "extension_probes", lambda *a, **kw: None)
+    monkeypatch.setattr(loop_mod, "tangent_margin", lambda *a, **kw: 1.0)
+    lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
+                          LearnOptions(smoothing=(0.1,), extrapolation=((0.0, 0.0),), extend=(2.0, 4.0), modes=4),
+                          log=None)
+    # error as a function of the step s along the update (the weights scale with s from zero)
+    monkeypatch.setattr(lr, "_train_error",
+                        lambda p, bound=np.inf: (abs(float(p.weights[0, 0]) - optimum) + 0.1, [], []))
+    p, info, _ = lr._update(None, None, None, optimum + 0.1, 0)
+    assert info["update_step"] == expect_step and float(p.weights[0, 0]) == expect_step
+    assert [t["step"] for t in info["steps_tried"]] == expect_tried
+
+
+def test_extend_steps_are_validated():
+    with pytest.raises(ValueError, match="extend"):
+        LearnOptions(extend=(0.5,))
+    with pytest.raises(ValueError, match="extend"):
+        LearnOptions(extend=(4.0, 2.0))
