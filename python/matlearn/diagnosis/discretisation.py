@@ -59,18 +59,22 @@ def discretisation(P, ctx, say):
     first = slice(0, 3 * int(recs[0].seen.sum()))  # the offset is measured on one recording
     fit = fitting.refine(P, ctx, ["stiffness_scale"], {}, r_start=(rc - rf)[first], iterations=2,
                          target=rf[first], recs=recs[:1])
-    # Coarse tets are too stiff: a grid of softer offsets too, as local steps from zero can stall
-    # on a large offset (independent suite, seed 12, a 288-tet plate with a hole: the refined
-    # mesh matches a 0.45x stiffness, the steps from zero were rejected, the offset stayed 0 and
-    # its range collapsed to [1, 1]); the local fit continues from the grid's best if that is
-    # better
-    best = fitting.scan(P, ctx, "stiffness_scale", fit.params["stiffness_scale"][0], (rc - rf)[first],
-                        grid=OFFSET_GRID, target=rf[first], recs=recs[:1])
-    if best[0] != fit.params["stiffness_scale"][0]:
-        grid_fit = fitting.refine(P, ctx, ["stiffness_scale"], {"stiffness_scale": best}, iterations=2,
-                                  target=rf[first], recs=recs[:1])
-        if grid_fit.rss < fit.rss:
-            fit = grid_fit
+    # Coarse tets are too stiff, so an offset of exactly zero means the local fit never moved
+    # (every step rejected) and the offset's range would collapse to a point: then the best of a
+    # grid of softer offsets is refined instead (independent suite, seed 12, a 288-tet plate with
+    # a hole: the refined mesh matches 0.45x; the range had collapsed to [1, 1] and none of the
+    # discrepancy was removed). Only then: tried in session 12 after every local fit, the grid's
+    # better offsets shrank the discrepancy left after the offset (named stiffness bar 6.9e-2 ->
+    # 1.0e-3) and with it the floor and every family's credit, while the truth's mesh error,
+    # in another pattern, stays; three named cases turned to a family mimicking that error
+    # (stiffness scale -> heterogeneity, support compliance -> Poisson ratio, stiffness +
+    # damping -> tension nonlinearity)
+    if fit.params["stiffness_scale"][0] == 0.0:
+        best = fitting.scan(P, ctx, "stiffness_scale", 0.0, (rc - rf)[first], grid=OFFSET_GRID,
+                            target=rf[first], recs=recs[:1])
+        if best[0] != 0.0:
+            fit = fitting.refine(P, ctx, ["stiffness_scale"], {"stiffness_scale": best}, iterations=2,
+                                 target=rf[first], recs=recs[:1])
     theta_r = float(fit.params["stiffness_scale"][0])
     b = rf - fitting.residual_of(P, ctx, fit.params, recs)
     lo, hi = sorted((DISC_RANGE[0] * theta_r, DISC_RANGE[1] * theta_r))
