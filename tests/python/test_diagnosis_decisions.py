@@ -134,3 +134,31 @@ def test_history_is_not_claimed_for_a_stateless_body(two_bodies):
     res = history.check(*_problem(a), None, floor)
     assert res["parameters"], "the test was skipped: the control must exercise it"
     assert not res["detected"]
+
+
+def test_a_refuted_linearisation_gets_every_credited_family_simulated():
+    """pipeline._linearisation_refuted: the linear predictions pick which families are
+    simulated; when a simulated fit gains far more than its prediction (a large gap, a poor
+    linearisation) every family they credit with any gain is simulated too, nested ones first
+    (independent tube on a soft pad: the stiffness scale predicted 9.75 from 10.44 and reached
+    0.447; the clamp layer, predicted 8.08 and never simulated, reaches 0.156)."""
+    from types import SimpleNamespace
+
+    from matlearn.diagnosis.pipeline import _linearisation_refuted
+
+    rss0 = 10.44
+    cheap = {"rayleigh_damping": (None, 4.13), "strain_dependent_damping": (None, 3.90),
+             "compression_nonlinearity": (None, 6.78), "stiffness_scale": (None, 9.75),
+             "support_compliance": (None, 8.08), "density": (None, 9.75), "poisson_ratio": (None, 10.5)}
+    order = sorted(cheap, key=lambda n: cheap[n][1])
+    tol = dict.fromkeys(cheap, 0.01)
+    fits = {"rayleigh_damping": SimpleNamespace(rss=5.28), "compression_nonlinearity": SimpleNamespace(rss=7.99),
+            "stiffness_scale": SimpleNamespace(rss=0.447)}
+    surprised, rest = _linearisation_refuted(fits, cheap, rss0, tol, order)
+    assert surprised == ["stiffness_scale"]
+    # density mirrors the scale; the Poisson ratio is credited with no gain; the nested
+    # strain-dependent damping after its smaller family
+    assert rest == ["support_compliance", "strain_dependent_damping"]
+    # fits that gain about what the linearisation predicted: nothing more is simulated
+    fits["stiffness_scale"] = SimpleNamespace(rss=9.0)
+    assert _linearisation_refuted(fits, cheap, rss0, tol, order) == ([], [])
