@@ -58,12 +58,15 @@ def test_learning_cuts_held_out_error_and_resume_is_identical(case, tmp_path):
 def test_cli_writes_model_metrics_and_plots(case, tmp_path):
     out = tmp_path / "run"
     rc = cli.main(["learn", str(case), "--out", str(out), "--iterations", "1", "--modes", "10",
-                   "--centers", "8", "--no-distill", "--quiet"])
+                   "--centers", "8", "--no-distill", "--quiet", "--extend", "3"])
     assert rc == 0
     for name in ("model.npz", "model.json", "metrics.json", "convergence.png", "error_histograms.png"):
         assert (out / name).exists(), name
     metrics = json.loads((out / "metrics.json").read_text())
     assert len(metrics["iterations"]) == 2
+    assert metrics["options"]["extend"] == [3.0]
+    steps = [t["step"] for t in metrics["iterations"][0]["fit"]["steps_tried"]]
+    assert steps[0] == 1.0 and set(steps[1:]) <= {3.0, 0.5, 0.25}
     corr = load_model(out)
     Fh = np.array([[1.05, 1.0, 0.97]])
     assert np.all(np.isfinite(corr.evaluate(Fh, np.zeros_like(Fh))[0]))

@@ -31,7 +31,8 @@ def run(args) -> int:
     opts = LearnOptions(iterations=args.iterations, lam=args.lam, modes=args.modes,
                         centers=args.centers, seed=args.seed,
                         refresh_correspondences=args.refresh_correspondences,
-                        extrapolation=EXTRAPOLATION_WEIGHTS, tangent_damping=args.tangent_damping)
+                        extrapolation=EXTRAPOLATION_WEIGHTS, tangent_damping=args.tangent_damping,
+                        extend=tuple(args.extend))
     t0 = time.time()
     log = (lambda *a: print(*a, file=sys.stderr, flush=True)) if not args.quiet else None
     from ..learning.start import learn_from
@@ -102,6 +103,10 @@ def register(subparsers) -> None:
                    help="the stiffness-proportional Rayleigh damping acts on the corrected tangent "
                         "(alpha_K K(nominal + correction)) instead of the nominal one; see README, "
                         "Learning")
+    p.add_argument("--extend", type=float, nargs="*", default=[2.0, 4.0], metavar="T",
+                   help="an update that lowers the train error is tried at these multiples of "
+                        "itself, each kept while it lowers the error further (default 2 4; "
+                        "--extend alone: none)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--refresh-correspondences", type=int, default=0, metavar="N",
                    help="point clouds: rounds of re-estimating the correspondences at the space-time "

@@ -12,7 +12,7 @@ from . import fitting
 # discrepancy (linear tets, error ~ h^2): 0.55 for a truth meshed 1.5x finer than the model, 4/3
 # for the continuum (Richardson).
 DISC_RANGE = (0.55, 4.0 / 3.0)
-# log stiffness offsets scanned before the offset's local fit (coarse linear tets are too stiff)
+# log stiffness offsets scanned when the offset's local fit never moves (coarse linear tets are too stiff)
 OFFSET_GRID = (-0.05, -0.1, -0.2, -0.35, -0.5, -0.7, -0.9, -1.2)
 
 
