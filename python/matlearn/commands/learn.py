@@ -103,10 +103,10 @@ def register(subparsers) -> None:
                    help="the stiffness-proportional Rayleigh damping acts on the corrected tangent "
                         "(alpha_K K(nominal + correction)) instead of the nominal one; see README, "
                         "Learning")
-    p.add_argument("--extend", type=float, nargs="*", default=[2.0, 4.0], metavar="T",
-                   help="an update that lowers the train error is tried at these multiples of "
-                        "itself, each kept while it lowers the error further (default 2 4; "
-                        "--extend alone: none)")
+    p.add_argument("--extend", type=float, nargs="*", default=[], metavar="T",
+                   help="an update that lowers the train error is also tried at these multiples of "
+                        "itself (e.g. 2 4), each kept while it lowers the train error further: fewer "
+                        "iterations, but the held-out error can rise (README, Learning); default none")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--refresh-correspondences", type=int, default=0, metavar="N",
                    help="point clouds: rounds of re-estimating the correspondences at the space-time "
