@@ -114,7 +114,6 @@ void element_matrix(const Mat9& A, const PrincipalTangent& T, double W, Mat12& o
     for (int l = 0; l < 3; ++l) out(r, l) = -(out(r, 3 + l) + out(r, 6 + l) + out(r, 9 + l));
 }
 
-
 }  // namespace
 
 /// Vertex forces -W P Bm^T of a tet (12), vertex 0 first, for the world stress P.

@@ -159,16 +159,19 @@ NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model
     // bilinear in (elastic, damping) weights; linearised at the current model (Gauss-Newton):
     // elastic features damp with the current effective alpha_K, the damping columns act on the
     // current corrected tangent, and y loses the cross term dalpha_cur K_corr,cur v counted twice.
-    // st / st_nom: the damping model's and the nominal model's state (forces and K v), once.
-    const fem::Model& damp_model = (tangent_damping && current) ? *current : nominal;
-    fem::ElementState st, st_nom;
-    if (tangent_damping) {
-      damp_model.evaluate(x, v, fem::kForce | fem::kDampingKv, true, st);
-      if (current) nominal.evaluate(x, v, fem::kForce | fem::kDampingKv, true, st_nom);
-    }
+    // st_nom / st: the nominal model's and the damping model's state (forces and K v), each
+    // evaluated once per frame; the damping model is the nominal one unless tangent damping
+    // acts on the current corrected tangent.
+    const bool corrected_damping = tangent_damping && current;
+    const fem::Model& damp_model = corrected_damping ? *current : nominal;
+    fem::ElementState st_nom, st_cur;
+    if (current || damping || tangent_damping)
+      nominal.evaluate(x, v, fem::kForce | fem::kDampingKv, true, st_nom);
+    if (corrected_damping) current->evaluate(x, v, fem::kForce | fem::kDampingKv, true, st_cur);
+    const fem::ElementState& st = corrected_damping ? st_cur : st_nom;
     if (current)
-      y += tangent_damping ? VecX(current->gather_forces(st) - nominal.gather_forces(st_nom))
-                           : VecX(current->forces(x, v) - nominal.forces(x, v));
+      y += VecX((corrected_damping ? current->gather_forces(st_cur) : current->forces(x, v)) -
+                nominal.gather_forces(st_nom));
     SpMat R[3];
     MatX Fe;
     if (tangent_damping) {
@@ -215,8 +218,7 @@ NormalEquations fit_normal_equations(const fem::Model& nominal, const fem::Model
       }
     }
     // the damping columns: force per unit alpha_K change, on the damping model's tangent
-    const SpMat G = !damping ? SpMat() : tangent_damping ? damp_model.stiffness_damping_map(st)
-                                                         : nominal.stiffness_damping_map(x, v);
+    const SpMat G = damping ? damp_model.stiffness_damping_map(st) : SpMat();
     if (basis) {
       const MatX Bt = SpMat(B.transpose()) * phi;  // (3m x r)
       for (int k = 0; k < 3; ++k) {

@@ -70,8 +70,8 @@ def discretisation(P, ctx, say):
     # (stiffness scale -> heterogeneity, support compliance -> Poisson ratio, stiffness +
     # damping -> tension nonlinearity)
     if fit.params["stiffness_scale"][0] == 0.0:
-        best = fitting.scan(P, ctx, "stiffness_scale", 0.0, (rc - rf)[first], grid=OFFSET_GRID,
-                            target=rf[first], recs=recs[:1])
+        best = fitting.scan(P, ctx, "stiffness_scale", OFFSET_GRID[0], (rc - rf)[first],
+                            grid=OFFSET_GRID[1:], target=rf[first], recs=recs[:1])
         if best[0] != 0.0:
             fit = fitting.refine(P, ctx, ["stiffness_scale"], {"stiffness_scale": best}, iterations=2,
                                  target=rf[first], recs=recs[:1])

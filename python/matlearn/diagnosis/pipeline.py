@@ -409,8 +409,7 @@ def _linearisation_refuted(fits, cheap, rss0, tol, order):
     """(families whose simulated fit gained more than SURPRISE x their linearised prediction
     plus the noise tolerance, the families still to simulate because of them: every family
     not simulated yet that the linear fits credit with any gain, nested (smaller) ones first)."""
-    surprised = [n for n in fits if n in cheap
-                 and rss0 - fits[n].rss > SURPRISE * max(rss0 - cheap[n][1], 0.0) + tol[n]]
+    surprised = [n for n in fits if rss0 - fits[n].rss > SURPRISE * max(rss0 - cheap[n][1], 0.0) + tol[n]]
     if not surprised:
         return [], []
     rest = [n for n in order if n not in fits and n != "density" and cheap[n][1] < rss0]
