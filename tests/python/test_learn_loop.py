@@ -174,3 +174,32 @@ def test_extend_steps_are_validated():
         LearnOptions(extend=(0.5,))
     with pytest.raises(ValueError, match="extend"):
         LearnOptions(extend=(4.0, 2.0))
+
+
+def test_backtrack_steps_are_fractions_of_the_full_update(case, tmp_path, monkeypatch):
+    """The shortened steps of LearnOptions.backtrack are fractions of the full update, not of
+    the previous shortened one: the recorded step 0.25 applies a quarter of the fit (the loop
+    had blended each try from the last, so "0.25" was an eighth)."""
+    from matlearn.learning.fit import RbfParams
+
+    monkeypatch.setattr(loop_mod, "fit_system", lambda *a, **kw: None)
+    monkeypatch.setattr(loop_mod, "solve_fit",
+                        lambda system, ridge, smooth=0.0: (RbfParams(np.ones((1, 3)), np.ones((1, 3))),
+                                                           {"residual_ratio": 0.0}))
+    monkeypatch.setattr(loop_mod, "extension_probes", lambda *a, **kw: None)
+    monkeypatch.setattr(loop_mod, "tangent_margin", lambda *a, **kw: 1.0)
+    lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
+                          LearnOptions(smoothing=(0.1,), extrapolation=((0.0, 0.0),), extend=(), modes=4),
+                          log=None)
+    applied = []
+
+    def train_error(p, bound=np.inf):  # lowest near a fifth of the update: only 0.25 improves
+        w = float(p.weights[0, 0])
+        applied.append(w)
+        return abs(w - 0.2) + 0.1, [], []
+
+    monkeypatch.setattr(lr, "_train_error", train_error)
+    p, info, _ = lr._update(None, None, None, 0.2, 0)
+    assert applied == [1.0, 0.5, 0.25]
+    assert [t["step"] for t in info["steps_tried"]] == [1.0, 0.5, 0.25]
+    assert info["update_step"] == 0.25 and float(p.weights[0, 0]) == 0.25

@@ -535,15 +535,17 @@ class Learner:
                           "stopped_early": bool(np.isfinite(e) and ss is None)})
             return e, es, ss
 
+        full = p
         for t in opt.backtrack:
             if err < current_err:
                 break
             info["update_step"] = t
-            q = _blend(params, p, t)
-            err, errs, sims = check(t, q, current_err)
+            # t is the fraction of the full update (blending from the previous shortened step
+            # would compound: "0.25" after "0.5" was an eighth)
+            p = _blend(params, full, t)
+            err, errs, sims = check(t, p, current_err)
             self.log(f"  update does not lower the train error ({tried[-2]['train_max_error_pct']:.3f}% >= "
                      f"{current_err:.3f}%); step {t:g}: {err:.3f}%")
-            p = q
         if err < current_err and info["update_step"] == 1.0:
             # The accepted update is a direction too: longer steps along it (a line search,
             # each checked by a forward simulation like any candidate and kept only while it
