@@ -269,25 +269,3 @@ def test_the_discretisation_offset_is_found_when_local_steps_from_zero_stall(tmp
     assert ref2 == pytest.approx(ref, abs=0.1) and ref2 < -0.05
     assert rng2[1] - rng2[0] > 0.25 * abs(ref2)  # not collapsed to a point
     assert bb2 <= 1.05 * bb
-
-
-@pytest.mark.parametrize("bounds, theta, offset, cost",
-                         [((-0.5, 0.5), -1.2, 0.3, 0.0), ((-0.1, 0.1), -0.3, 0.075, 0.81)])
-def test_scan_with_the_offset_finds_a_joint_move_the_family_alone_misses(monkeypatch, bounds, theta, offset, cost):
-    """fitting.scan of a family fitted with the discretisation offset: a grid point that alone
-    is worse than the baseline (a Poisson ratio change at fixed E stiffens the shear) but good
-    with the offset its residual asks for (along the offset's sensitivity j, clipped to its
-    range) is found; without the offset the scan stays at zero."""
-    from matlearn.diagnosis.effects import NUISANCE
-
-    def residual_of(problem, ctx, params, recs=None):
-        t = float(params["poisson_ratio"][0])
-        o = float(params.get(NUISANCE, [0.0])[0])
-        return np.array([t + 1.2, 20.0 * (o + 0.25 * t)])
-
-    monkeypatch.setattr(fitting, "residual_of", residual_of)
-    r0 = residual_of(None, None, {"poisson_ratio": [0.0]})
-    assert fitting.scan(None, None, "poisson_ratio", 0.0, r0)[0] == 0.0  # alone: every point worse
-    start, r = fitting.scan(None, None, "poisson_ratio", 0.0, r0, offset=(np.array([0.0, 20.0]), bounds))
-    assert start["poisson_ratio"][0] == pytest.approx(theta)  # (a narrow range: the best it allows)
-    assert start[NUISANCE][0] == pytest.approx(offset) and float(r @ r) == pytest.approx(cost, abs=1e-12)

@@ -196,32 +196,21 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
 
 
 def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-2.4, -1.2, -0.6, -0.3, 0.3, 0.6, 1.2),
-         target=None, recs=None, offset=None):
+         target=None, recs=None) -> np.ndarray:
     """Best of the linearised estimate and a coarse grid of a 1-parameter family (simulated),
     as the start of the local refinement. The grid reaches large changes (a Poisson ratio
     0.24 lower, a stiffness 3x higher or 11x lower): an oscillation's phase makes the residual
     multimodal, so a large true change is not reached by local steps from a small one.
-    r0: the residual at theta = 0; target, recs: as in `refine`.
-    offset: (j, bounds) for a family fitted with the discretisation offset (NUISANCE): each
-    grid point also gets the offset that its simulated residual asks for along the offset's
-    sensitivity j (clipped to bounds) and is simulated again with it; then returns
-    ({name: theta, NUISANCE: [offset]}, its residual) instead of theta."""
-    best = (float(r0 @ r0), {name: np.zeros(1)}, r0)
+    r0: the residual at theta = 0; target, recs: as in `refine`."""
+    best = (float(r0 @ r0), np.zeros(1))
     for t in [float(np.asarray(theta_cheap).ravel()[0])] + list(grid):
-        tries = [{name: [t]}]
-        for k, params in enumerate(tries):
-            r = residual_of(problem, ctx, params, recs)
-            if target is not None:
-                r = r - target
-            c = float(r @ r)
-            if c < best[0]:
-                best = (c, {n: np.asarray(v, float) for n, v in params.items()}, r)
-            if offset is not None and k == 0:
-                j, bounds = offset
-                off = float(np.clip(-float(j @ r) / max(float(j @ j), 1e-300), *bounds))
-                if off != 0.0:
-                    tries.append({name: [t], NUISANCE: [off]})
-    return (best[1], best[2]) if offset is not None else best[1][name]
+        r = residual_of(problem, ctx, {name: [t]}, recs)
+        if target is not None:
+            r = r - target
+        c = float(r @ r)
+        if c < best[0]:
+            best = (c, np.array([t]))
+    return best[1]
 
 
 def score(rss: float, dof: int, n_eff: float, rss_floor: float) -> float:

@@ -196,11 +196,11 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     J["heterogeneity"] = np.stack([Jp[:, sel].sum(axis=1), Jp[:, ~sel].sum(axis=1)], axis=1)
     J_raw["heterogeneity"] = np.stack([Jp_raw[:, sel].sum(axis=1), Jp_raw[:, ~sel].sum(axis=1)], axis=1)
     say(f"sensitivities done ({P.simulations} simulations); region {int(ctx.region.sum())} tets")
-    cheap, cheap_offset = {}, {}
+    cheap = {}
     nuis = (ctx.offset_range[0] - ctx.offset_applied, ctx.offset_range[1] - ctx.offset_applied)
     for name, Jn in J.items():
         if name in WITH_NUISANCE:  # jointly with the bounded discretisation offset
-            th, rss, cheap_offset[name] = _linear_fit_nuisance(Jn, J["stiffness_scale"][:, 0], r0, nuis)
+            th, rss = _linear_fit_nuisance(Jn, J["stiffness_scale"][:, 0], r0, nuis)
         else:
             th, rss = fitting.linear_fit(Jn, r0)
         cheap[name] = (th, rss)
@@ -236,29 +236,14 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     to_refine.sort(key=lambda n: n in NESTS)  # the nested (smaller) family first
 
     def simulate_fit(name):
-        start, r_start = {name: cheap[name][0]}, None
-        names = [name] + ([NUISANCE] if name in WITH_NUISANCE else [])
+        start = {name: cheap[name][0]}
         if name == "heterogeneity":  # the two levels of the patch map
             start = {name: list(het_start)}
         elif len(FAMILIES[name].parameters) == 1:
             # oscillation phases make 1-parameter scale fits multimodal: scan before refining
-            # (a family fitted with the offset: each grid point with the offset it asks for,
-            # as a change at fixed E can be worse than the baseline where the joint one is
-            # better, and local steps from zero are then all rejected: named Poisson ratio
-            # case, 0.42 -> 0.22 stiffens the shear; it never left zero)
-            if name in WITH_NUISANCE:
-                start, r_start = fitting.scan(P, ctx, name, cheap[name][0], r0,
-                                              offset=(J["stiffness_scale"][:, 0], nuis))
-            else:
-                start = {name: fitting.scan(P, ctx, name, cheap[name][0], r0)}
-        elif cheap_offset.get(name, 0.0) != 0.0:
-            # the linearised start of a family fitted with the offset is a joint move: with
-            # its offset or without (the better of the two, by simulation)
-            joint = {name: cheap[name][0], NUISANCE: [cheap_offset[name]]}
-            tries = [(start, fitting.residual_of(P, ctx, start)), (joint, fitting.residual_of(P, ctx, joint))]
-            start, r_start = min(tries, key=lambda sr: float(sr[1] @ sr[1]))
-        fits[name] = fitting.refine(P, ctx, names, start, r_start=r_start, iterations=2, progress=say,
-                                    r_zero=r0)
+            start = {name: fitting.scan(P, ctx, name, cheap[name][0], r0)}
+        names = [name] + ([NUISANCE] if name in WITH_NUISANCE else [])
+        fits[name] = fitting.refine(P, ctx, names, start, iterations=2, progress=say, r_zero=r0)
         if name in NESTS and NESTS[name][0] in fits:
             # the larger family from the smaller one's optimum: it can only do better
             small, embed = NESTS[name]
@@ -452,14 +437,14 @@ def _safe_gap(P, ctx, params, fast=False, model=None):
 def _linear_fit_nuisance(Jn, j_offset, r0, bounds):
     """Linear fit of a family together with the discretisation offset column, the offset kept
     inside its plausible range `bounds` (clipped, the family refit with the offset fixed).
-    Returns (family theta, predicted rss, offset)."""
+    Returns (family theta, predicted rss)."""
     th, rss = fitting.linear_fit(np.column_stack([Jn, j_offset]), r0)
     t_off = float(np.clip(th[-1], *bounds))
     if t_off != th[-1]:
         r_fixed = r0 + j_offset * t_off
         th_f, rss = fitting.linear_fit(Jn, r_fixed)
-        return th_f, rss, t_off
-    return th[:-1], rss, t_off
+        return th_f, rss
+    return th[:-1], rss
 
 
 def _dof(name):
