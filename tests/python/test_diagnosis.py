@@ -79,6 +79,10 @@ def test_report_is_self_contained_and_the_residual_map_is_readable(stiff):
     page = (out / "report.html").read_text()
     assert page.count("data:image/png;base64,") >= 5
     assert "http://" not in page and "https://" not in page
+    # the mesh's share of the gap is stated with the numbers of diagnosis.json
+    d = json.loads((out / "diagnosis.json").read_text())["discretisation"]
+    assert "<b>Mesh:</b>" in page and f"E x {d['stiffness_factor']:.3g}" in page
+    assert f"max {d['gap_with_offset']['max_error_pct']:.2f} %" in page
     m = meshio.read(out / "residual_map.vtu")
     share = m.cell_data["residual_share"][0]
     assert len(share) == len(m.cells_dict["tetra"])

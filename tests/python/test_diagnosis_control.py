@@ -12,6 +12,11 @@ def test_control_case_claims_no_effect(tmp_path):
     # the raw gap is not zero (coarse mesh), it is within the estimated floor
     assert result["gap_before"]["max_error_pct"] > 0
     assert result["floor"]["rss_train"] < 2.5 * result["floor"]["rss_floor"]
+    # and the result says so: the coarse mesh is too stiff, and with only the stiffness factor
+    # it takes (inside its range) the held-out gap shrinks by most of itself (5.6 -> 0.65 %)
+    d = result["discretisation"]
+    assert d["refined_mesh_factor"] < 0.9 and d["factor_range"][0] <= d["stiffness_factor"] <= d["factor_range"][1]
+    assert d["gap_with_offset"]["max_error_pct"] < 0.3 * result["gap_before"]["max_error_pct"]
 
 
 def test_truth_on_the_model_mesh_claims_no_effect(tmp_path):

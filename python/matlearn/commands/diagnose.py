@@ -49,4 +49,8 @@ def _run(args):
     r = diagnose(scene, args.out, seed=args.seed, report=not args.no_report,
                  residual_source=args.residual)
     print(f"verdict: {', '.join(r['verdict']) or '[] (within noise and discretisation)'}")
+    d, gb = r.get("discretisation") or {}, r["gap_before"]
+    if d.get("gap_with_offset"):
+        print(f"held-out gap {gb['max_error_pct']:.2f} %; with the mesh's stiffness factor E x "
+              f"{d['stiffness_factor']:.3g} alone (no effect) {d['gap_with_offset']['max_error_pct']:.2f} %")
     return 0

@@ -98,6 +98,24 @@ def _trajectory_figure(problem, model_pairs):
     return fig
 
 
+def mesh_paragraph(result) -> str:
+    """What the model's mesh contributes to the gap (result["discretisation"]), as HTML."""
+    d = result.get("discretisation")
+    if not d:
+        return ""
+    g, gb = d.get("gap_with_offset"), result["gap_before"]
+    text = (f"linear tets are too stiff; this mesh matches its once-refined mesh with E x "
+            f"{d['refined_mesh_factor']:.3g}, and the recordings ask for E x {d['stiffness_factor']:.3g} "
+            f"(inside the range a finer truth explains, {d['factor_range'][0]:.3g} .. {d['factor_range'][1]:.3g}; "
+            f"a uniform stiffness or density change inside it cannot be told apart from the mesh's error).")
+    if g:
+        text += (f" With that factor alone, no effect added, the held-out gap is max {g['max_error_pct']:.2f} %"
+                 f" (before {gb['max_error_pct']:.2f} %).")
+        if not result["verdict"] and g["max_error_pct"] < 0.5 * gb["max_error_pct"]:
+            text += " Most of the gap is the mesh's discretisation: refine the mesh (or scale E by that factor on it)."
+    return f"<p><b>Mesh:</b> {html.escape(text)}</p>"
+
+
 def write_report(out, problem, ctx, result, shares, field, fits, selected, patch_theta, labels):
     from .effects import build_model
 
@@ -143,6 +161,7 @@ def write_report(out, problem, ctx, result, shares, field, fits, selected, patch
 <p>Held-out gap before: max {gb['max_error_pct']:.2f} %, RMS {gb['rms_error_pct']:.2f} % of the object size
 ({result['object_size']:.4g} m){'' if result['held_out'] else ' (no test recording: scored on train)'}.
 Floor: train rss {result['floor']['rss_train']:.3e} vs noise+discretisation {result['floor']['rss_floor']:.3e}.</p>
+{mesh_paragraph(result)}
 <h2>Which effect</h2><table><tr><th>effect</th><th>explained</th><th>score (BIC)</th><th>parameters</th>
 <th>gap after (max / RMS %)</th><th>confounded with</th></tr>{rows}</table>
 <h2>Where</h2>{''.join(f'<h3>{html.escape(t)}</h3><img src="{src}">' for t, src in figs)}
