@@ -269,3 +269,32 @@ def test_the_discretisation_offset_is_found_when_local_steps_from_zero_stall(tmp
     assert ref2 == pytest.approx(ref, abs=0.1) and ref2 < -0.05
     assert rng2[1] - rng2[0] > 0.25 * abs(ref2)  # not collapsed to a point
     assert bb2 <= 1.05 * bb
+
+
+def test_refine_leaves_a_clamped_start_of_a_damping_fit():
+    """A linearised start with alpha_M < 0 (clamped to 0 by build_model: no slope there) is
+    projected onto the clamp, so the local fit can still reach a positive alpha_M; before,
+    every finite-difference step stayed in the flat region and alpha_M stayed 0."""
+    from matlearn.diagnosis.effects import theta_bounds
+
+    ctx = _ctx(omega=30.0)  # nominal alpha_M = alpha_K = 0
+    lo, hi = theta_bounds("rayleigh_damping", ctx)
+    assert lo.tolist() == [0.0, 0.0] and np.isinf(hi).all()
+    target = np.array([2.0, 0.004])  # alpha_M (1/s), alpha_K (s)
+
+    def res(params):
+        t = np.asarray(params["rayleigh_damping"], float)
+        aM, aK = max(0.1 * ctx.omega * t[0], 0.0), max(0.1 / ctx.omega * t[1], 0.0)
+        return np.array([aM - target[0], 100.0 * (aK - target[1]), 0.3 * (aM - target[0]) + 10 * aK])
+
+    import matlearn.diagnosis.fitting as F
+
+    orig = F.residual_of
+    try:
+        F.residual_of = lambda problem, c, params, recs=None: res(params)
+        fit = F.refine(None, ctx, ["rayleigh_damping"], {"rayleigh_damping": np.array([-2.0, 0.5])},
+                       iterations=3)
+    finally:
+        F.residual_of = orig
+    t = fit.params["rayleigh_damping"]
+    assert 0.1 * ctx.omega * t[0] > 1.0  # alpha_M left zero towards the data's 2.0

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .effects import FAMILIES, NUISANCE, build_model, n_params
+from .effects import FAMILIES, NUISANCE, build_model, n_params, theta_bounds
 from .problem import stack_residuals
 
 
@@ -155,6 +155,11 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
         return {n: p for n, p in zip(names, np.split(v, split))}
 
     x = np.concatenate([np.asarray(theta0.get(n, np.zeros(s)), float) for n, s in zip(names, sizes)])
+    # parameters past a clamp of build_model (e.g. a negative alpha_M) give the same model as at
+    # the clamp but no slope there: kept on it (same model, same residual), so a step can move
+    # them back (a linearised start with alpha_M < 0 left the named-style Rayleigh fits at alpha_M = 0)
+    lo, hi = (np.concatenate(b) for b in zip(*(theta_bounds(n, ctx) for n in names)))
+    x = np.clip(x, lo, hi)
     r = res(unpack(x)) if r_start is None else r_start
     evals = 0 if r_start is not None else 1
     cost = float(r @ r)
@@ -167,8 +172,9 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
         J = np.zeros((len(r), len(x)))
         for i in range(len(x)):
             xp = x.copy()
-            xp[i] += step
-            J[:, i] = (res(unpack(xp)) - r) / step
+            h = step if x[i] + step <= hi[i] else -step  # (a backward difference at an upper bound)
+            xp[i] += h
+            J[:, i] = (res(unpack(xp)) - r) / h
             evals += 1
         JTJ, g = J.T @ J, J.T @ r
         improved = False
@@ -181,7 +187,7 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
             evals += 1
             cn = float(rn @ rn)
             if cn < cost:
-                x, r, cost = x + dx, rn, cn
+                x, r, cost = np.clip(x + dx, lo, hi), rn, cn
                 mu = max(mu / 10, 1e-6)
                 improved = True
                 break
