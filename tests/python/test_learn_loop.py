@@ -42,7 +42,7 @@ def test_an_update_that_raises_the_train_error_is_rejected(case, tmp_path, monke
     assert [m["update"] for m in ms] == ["rejected", "rejected"] and ms[-1]["stop"] == "no improving update"
     for m in ms:
         tried = m["fit"]["steps_tried"]
-        assert [t["step"] for t in tried] == [1.0, 0.5, 0.25]
+        assert [t["step"] for t in tried] == [1.0, 0.5, 0.25, 0.125]
         assert all(t["train_max_error_pct"] >= m["train"]["max_error_pct"] for t in tried)
         assert m["train"]["max_error_pct"] == ms[0]["train"]["max_error_pct"]
     assert res["params"] is None  # the nominal model stays
@@ -54,7 +54,7 @@ def test_an_overshooting_update_is_shortened_and_errors_never_increase(case, tmp
     res = learn(load_scene(case), tmp_path / "run", LearnOptions(iterations=2, **OPTS), log=None)
     m0 = res["metrics"][0]
     assert m0["fit"]["steps_tried"][0]["train_max_error_pct"] > m0["train"]["max_error_pct"]
-    assert m0["fit"]["update_step"] in (0.5, 0.25)
+    assert m0["fit"]["update_step"] in (0.5, 0.25, 0.125)
     train = [m["train"]["max_error_pct"] for m in res["metrics"]]
     assert len(train) >= 2 and all(b < a for a, b in zip(train, train[1:])), train
     assert res["best_iteration"] == res["metrics"][-1]["iteration"]
@@ -178,8 +178,8 @@ def test_extend_steps_are_validated():
 
 def test_backtrack_steps_are_fractions_of_the_full_update(case, tmp_path, monkeypatch):
     """The shortened steps of LearnOptions.backtrack are fractions of the full update, not of
-    the previous shortened one: the recorded step 0.25 applies a quarter of the fit (the loop
-    had blended each try from the last, so "0.25" was an eighth)."""
+    the previous shortened one: the recorded step 0.125 applies an eighth of the fit (the loop
+    had blended each try from the last, so "0.25" after "0.5" was an eighth)."""
     from matlearn.learning.fit import RbfParams
 
     monkeypatch.setattr(loop_mod, "fit_system", lambda *a, **kw: None)
@@ -193,13 +193,13 @@ def test_backtrack_steps_are_fractions_of_the_full_update(case, tmp_path, monkey
                           log=None)
     applied = []
 
-    def train_error(p, bound=np.inf):  # lowest near a fifth of the update: only 0.25 improves
+    def train_error(p, bound=np.inf):  # lowest near a tenth of the update: only 0.125 improves
         w = float(p.weights[0, 0])
         applied.append(w)
-        return abs(w - 0.2) + 0.1, [], []
+        return abs(w - 0.1) + 0.1, [], []
 
     monkeypatch.setattr(lr, "_train_error", train_error)
-    p, info, _ = lr._update(None, None, None, 0.2, 0)
-    assert applied == [1.0, 0.5, 0.25]
-    assert [t["step"] for t in info["steps_tried"]] == [1.0, 0.5, 0.25]
-    assert info["update_step"] == 0.25 and float(p.weights[0, 0]) == 0.25
+    p, info, _ = lr._update(None, None, None, 0.19, 0)
+    assert applied == [1.0, 0.5, 0.25, 0.125]
+    assert [t["step"] for t in info["steps_tried"]] == [1.0, 0.5, 0.25, 0.125]
+    assert info["update_step"] == 0.125 and float(p.weights[0, 0]) == 0.125

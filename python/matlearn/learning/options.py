@@ -30,7 +30,9 @@ class LearnOptions:
     whose train error is lower than the current one: one fit + one forward simulation per
     iteration instead of one per candidate, for large cases, bench/learning_scale.py); patience: iterations without
     improvement before stopping; seed: k-means seed; backtrack: shortened update steps tried
-    when the full update does not lower the train error; track: tracking options for cloud
+    when the full update does not lower the train error, as fractions of the full update (until
+    session 13 each try blended from the previous one, so the default's steps were effectively
+    0.5 and 0.125, recorded as 0.5 and 0.25; the halving ladder keeps 0.125 and adds 0.25); track: tracking options for cloud
     recordings (None: defaults); tangent_stride: frames sharing one nominal tangent evaluation
     in the space-time Jacobian (1: every frame; the per-frame tangents dominate the space-time
     cost of long recordings at 1 ms, bench/learning_scale.py measures the tradeoff);
@@ -81,7 +83,7 @@ class LearnOptions:
     ridge_search: str = "all"
     patience: int = 2
     seed: int = 0
-    backtrack: tuple = (0.5, 0.25)
+    backtrack: tuple = (0.5, 0.25, 0.125)
     track: TrackOptions | None = None
     smoothing: tuple = (1e-3, 1e-2, 1e-1, 1.0)
     extrapolation: tuple = ((0.0, 0.0),)
