@@ -144,12 +144,9 @@ def test_unstable_candidates_escalate_the_smoothing_before_shortening(case, tmp_
     assert [c["tangent_margin"] for c in info["ridge_candidates"]] == [-49.9, -49.0, -40.0, 50.0]
 
 
-@pytest.mark.parametrize("optimum, expect_step, expect_tried",
-                         [(3.0, 2.0, [1.0, 2.0, 4.0]), (5.0, 4.0, [1.0, 2.0, 4.0]), (1.2, 1.0, [1.0, 2.0])])
-def test_longer_steps_along_an_accepted_update(case, tmp_path, monkeypatch, optimum, expect_step, expect_tried):
-    """LearnOptions.extend: after the full update lowers the train error, longer steps along it
-    (2x, 4x the update) are checked by forward simulation and the longest one that keeps
-    lowering the error is taken; one that does not ends the search."""
+def _unit_update_learner(case, tmp_path, monkeypatch, extend):
+    """A Learner whose every fit is the update with all weights 1 and always stable, so a test
+    sets the train error as a function of the weights (the step along the update)."""
     from matlearn.learning.fit import RbfParams
 
     monkeypatch.setattr(loop_mod, "fit_system", lambda *a, **kw: None)
@@ -158,9 +155,18 @@ def test_longer_steps_along_an_accepted_update(case, tmp_path, monkeypatch, opti
                                                            {"residual_ratio": 0.0}))
     monkeypatch.setattr(loop_mod, "extension_probes", lambda *a, **kw: None)
     monkeypatch.setattr(loop_mod, "tangent_margin", lambda *a, **kw: 1.0)
-    lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
-                          LearnOptions(smoothing=(0.1,), extrapolation=((0.0, 0.0),), extend=(2.0, 4.0), modes=4),
-                          log=None)
+    return loop_mod.Learner(load_scene(case), tmp_path / "run",
+                            LearnOptions(smoothing=(0.1,), extrapolation=((0.0, 0.0),), extend=extend, modes=4),
+                            log=None)
+
+
+@pytest.mark.parametrize("optimum, expect_step, expect_tried",
+                         [(3.0, 2.0, [1.0, 2.0, 4.0]), (5.0, 4.0, [1.0, 2.0, 4.0]), (1.2, 1.0, [1.0, 2.0])])
+def test_longer_steps_along_an_accepted_update(case, tmp_path, monkeypatch, optimum, expect_step, expect_tried):
+    """LearnOptions.extend: after the full update lowers the train error, longer steps along it
+    (2x, 4x the update) are checked by forward simulation and the longest one that keeps
+    lowering the error is taken; one that does not ends the search."""
+    lr = _unit_update_learner(case, tmp_path, monkeypatch, extend=(2.0, 4.0))
     # error as a function of the step s along the update (the weights scale with s from zero)
     monkeypatch.setattr(lr, "_train_error",
                         lambda p, bound=np.inf: (abs(float(p.weights[0, 0]) - optimum) + 0.1, [], []))
@@ -180,17 +186,7 @@ def test_backtrack_steps_are_fractions_of_the_full_update(case, tmp_path, monkey
     """The shortened steps of LearnOptions.backtrack are fractions of the full update, not of
     the previous shortened one: the recorded step 0.125 applies an eighth of the fit (the loop
     had blended each try from the last, so "0.25" after "0.5" was an eighth)."""
-    from matlearn.learning.fit import RbfParams
-
-    monkeypatch.setattr(loop_mod, "fit_system", lambda *a, **kw: None)
-    monkeypatch.setattr(loop_mod, "solve_fit",
-                        lambda system, ridge, smooth=0.0: (RbfParams(np.ones((1, 3)), np.ones((1, 3))),
-                                                           {"residual_ratio": 0.0}))
-    monkeypatch.setattr(loop_mod, "extension_probes", lambda *a, **kw: None)
-    monkeypatch.setattr(loop_mod, "tangent_margin", lambda *a, **kw: 1.0)
-    lr = loop_mod.Learner(load_scene(case), tmp_path / "run",
-                          LearnOptions(smoothing=(0.1,), extrapolation=((0.0, 0.0),), extend=(), modes=4),
-                          log=None)
+    lr = _unit_update_learner(case, tmp_path, monkeypatch, extend=())
     applied = []
 
     def train_error(p, bound=np.inf):  # lowest near a tenth of the update: only 0.125 improves
