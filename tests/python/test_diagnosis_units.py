@@ -298,3 +298,17 @@ def test_refine_leaves_a_clamped_start_of_a_damping_fit():
         F.residual_of = orig
     t = fit.params["rayleigh_damping"]
     assert 0.1 * ctx.omega * t[0] > 1.0  # alpha_M left zero towards the data's 2.0
+
+
+def test_a_step_past_a_bound_holds_that_parameter_and_solves_the_rest_without_it():
+    """fitting._bounded_step: a parameter on its bound whose step points past it is held there,
+    and the other parameters' step is the solve without it (not the coupled step that counted
+    on the held one moving: with alpha_M on its clamp at 0 that step stalled the alpha_K fit)."""
+    A = np.array([[1.0, 0.9], [0.9, 1.0]])
+    g = -A @ np.array([-1.0, 2.0])  # the free step: (-1, 2)
+    x, lo, hi = np.zeros(2), np.array([0.0, -np.inf]), np.full(2, np.inf)
+    np.testing.assert_allclose(fitting._bounded_step(A, g, np.array([0.5, 0.0]), lo, hi), [-1.0, 2.0])
+    dx = fitting._bounded_step(A, g, x, lo, hi)
+    np.testing.assert_allclose(dx, [0.0, -g[1] / A[1, 1]])
+    # inward from the bound: free
+    np.testing.assert_allclose(fitting._bounded_step(A, -g, x, lo, hi), [1.0, -2.0])

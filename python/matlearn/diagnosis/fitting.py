@@ -182,7 +182,7 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
         improved = False
         for _ in range(2):
             A = JTJ + mu * np.diag(np.diag(JTJ) + 1e-12 * np.trace(JTJ) + 1e-300)
-            dx = -np.linalg.solve(A, g)
+            dx = _bounded_step(A, g, x, lo, hi)
             if np.abs(dx).max() > 2.0:
                 dx *= 2.0 / np.abs(dx).max()
             rn = res(unpack(x + dx))
@@ -201,6 +201,22 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
             break
     dof = sum(n_params(n) + FAMILIES[n].extra_dof for n in names if n != NUISANCE)
     return Fit("+".join(names), unpack(x), cost, dof, evals, hist)
+
+
+def _bounded_step(A, g, x, lo, hi):
+    """The step -A^-1 g with the parameters that sit on a bound and would step past it held
+    there (an active set: the others' step is solved without them). Stepping past a clamp
+    leaves the model as at the clamp, so a step that counted on such a move was poor for the
+    rest (r5_02: with alpha_M held at 0 by its clamp the Rayleigh fit of alpha_K stalled)."""
+    free = np.ones(len(x), bool)
+    while True:
+        dx = np.zeros(len(x))
+        if free.any():
+            dx[free] = -np.linalg.solve(A[np.ix_(free, free)], g[free])
+        held = free & (((x <= lo) & (dx < 0)) | ((x >= hi) & (dx > 0)))
+        if not held.any():
+            return dx
+        free &= ~held
 
 
 def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-2.4, -1.2, -0.6, -0.3, 0.3, 0.6, 1.2),
