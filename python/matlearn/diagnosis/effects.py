@@ -192,29 +192,6 @@ def build_model(ctx: EffectContext, params: dict):
     return make_model(ctx.mesh, material, damping, correction)
 
 
-def theta_bounds(name: str, ctx: EffectContext):
-    """(lo, hi) of a family's parameters beyond which `build_model` clamps them so that the model
-    no longer changes (a flat residual, where a finite-difference step sees no slope and a local
-    fit stalls): the same model is reached at the bound, so a fit may be projected onto it."""
-    k = n_params(name)
-    lo, hi = np.full(k, -np.inf), np.full(k, np.inf)
-    if name in ("stiffness_scale", "density"):
-        lo[:], hi[:] = -3.0, 3.0
-    elif name == NUISANCE:
-        lo[:], hi[:] = ctx.offset_range[0] - ctx.offset_applied, ctx.offset_range[1] - ctx.offset_applied
-    elif name == "heterogeneity":
-        lo[:], hi[:] = -4.0, 4.0
-    elif name == "support_compliance":
-        lo[:], hi[:] = -5.0, 3.0
-    elif name == "poisson_ratio":  # every element's ratio clipped to [0, 0.49]
-        nu = np.asarray(ctx.material.poisson_ratio, float)
-        lo[:], hi[:] = -float(np.max(nu)) / 0.1, (0.49 - float(np.min(nu))) / 0.1
-    elif name in ("rayleigh_damping", "strain_dependent_damping"):  # alpha_M, alpha_K >= 0
-        lo[0] = -float(ctx.damping.alpha_mass) / (0.1 * ctx.omega)
-        lo[1] = -float(ctx.damping.alpha_stiffness) * ctx.omega / 0.1
-    return lo, hi
-
-
 def describe(name: str, theta, ctx: EffectContext) -> dict:
     """Physical parameter values of a fitted family, for diagnosis.json."""
     t = np.asarray(theta, float)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .effects import FAMILIES, NUISANCE, build_model, n_params, theta_bounds
+from .effects import FAMILIES, NUISANCE, build_model, n_params
 from .problem import stack_residuals
 
 
@@ -155,11 +155,6 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
         return {n: p for n, p in zip(names, np.split(v, split))}
 
     x = np.concatenate([np.asarray(theta0.get(n, np.zeros(s)), float) for n, s in zip(names, sizes)])
-    # parameters past a clamp of build_model (e.g. a negative alpha_M) give the same model as at
-    # the clamp but no slope there: kept on it (same model, same residual), so a step can move
-    # them back (a linearised start with alpha_M < 0 left the named-style Rayleigh fits at alpha_M = 0)
-    lo, hi = (np.concatenate(b) for b in zip(*(theta_bounds(n, ctx) for n in names)))
-    x = np.clip(x, lo, hi)
     r = res(unpack(x)) if r_start is None else r_start
     evals = 0 if r_start is not None else 1
     cost = float(r @ r)
@@ -172,9 +167,6 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
         J = np.zeros((len(r), len(x)))
         for i in range(len(x)):
             xp = x.copy()
-            # (forward: at an upper bound the column is zero and the parameter stays there; a
-            # backward difference freed the offset at the top of its range, and the named
-            # tension bar's leave-one-out fit then went unstable: verdict [])
             xp[i] += step
             J[:, i] = (res(unpack(xp)) - r) / step
             evals += 1
@@ -182,14 +174,14 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
         improved = False
         for _ in range(2):
             A = JTJ + mu * np.diag(np.diag(JTJ) + 1e-12 * np.trace(JTJ) + 1e-300)
-            dx = _bounded_step(A, g, x, lo, hi)
+            dx = -np.linalg.solve(A, g)
             if np.abs(dx).max() > 2.0:
                 dx *= 2.0 / np.abs(dx).max()
             rn = res(unpack(x + dx))
             evals += 1
             cn = float(rn @ rn)
             if cn < cost:
-                x, r, cost = np.clip(x + dx, lo, hi), rn, cn
+                x, r, cost = x + dx, rn, cn
                 mu = max(mu / 10, 1e-6)
                 improved = True
                 break
@@ -201,22 +193,6 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
             break
     dof = sum(n_params(n) + FAMILIES[n].extra_dof for n in names if n != NUISANCE)
     return Fit("+".join(names), unpack(x), cost, dof, evals, hist)
-
-
-def _bounded_step(A, g, x, lo, hi):
-    """The step -A^-1 g with the parameters that sit on a bound and would step past it held
-    there (an active set: the others' step is solved without them). Stepping past a clamp
-    leaves the model as at the clamp, so a step that counted on such a move was poor for the
-    rest (r5_02: with alpha_M held at 0 by its clamp the Rayleigh fit of alpha_K stalled)."""
-    free = np.ones(len(x), bool)
-    while True:
-        dx = np.zeros(len(x))
-        if free.any():
-            dx[free] = -np.linalg.solve(A[np.ix_(free, free)], g[free])
-        held = free & (((x <= lo) & (dx < 0)) | ((x >= hi) & (dx > 0)))
-        if not held.any():
-            return dx
-        free &= ~held
 
 
 def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-2.4, -1.2, -0.6, -0.3, 0.3, 0.6, 1.2),
