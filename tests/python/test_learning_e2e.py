@@ -66,7 +66,7 @@ def test_cli_writes_model_metrics_and_plots(case, tmp_path):
     assert len(metrics["iterations"]) == 2
     assert metrics["options"]["extend"] == [3.0]
     steps = [t["step"] for t in metrics["iterations"][0]["fit"]["steps_tried"]]
-    assert steps[0] == 1.0 and set(steps[1:]) <= {3.0, 0.5, 0.25}
+    assert steps[0] == 1.0 and set(steps[1:]) <= {3.0, *LearnOptions().backtrack}
     corr = load_model(out)
     Fh = np.array([[1.05, 1.0, 0.97]])
     assert np.all(np.isfinite(corr.evaluate(Fh, np.zeros_like(Fh))[0]))

@@ -519,6 +519,7 @@ class Learner:
         # Lowest train error; among unsimulable candidates the most stable one (to be shortened).
         cands_best = min(cands, key=lambda c: (c[0], c[1], c[2]))
         err, _, _, p, info, errs, sims = cands_best
+        full, full_sims = p, sims  # the full update: every shorter or longer step blends from it
         info["ridge_candidates"] = [{"ridge": c[4]["ridge"], "smooth": c[4]["smooth"],
                                      "extrapolation": c[4]["extrapolation"],
                                      "tangent_margin": c[4]["tangent_margin"],
@@ -535,14 +536,11 @@ class Learner:
                           "stopped_early": bool(np.isfinite(e) and ss is None)})
             return e, es, ss
 
-        full = p
         for t in opt.backtrack:
             if err < current_err:
                 break
             info["update_step"] = t
-            # t is the fraction of the full update (blending from the previous shortened step
-            # would compound: "0.25" after "0.5" was an eighth)
-            p = _blend(params, full, t)
+            p = _blend(params, full, t)  # a fraction of the full update, not of the last step
             err, errs, sims = check(t, p, current_err)
             self.log(f"  update does not lower the train error ({tried[-2]['train_max_error_pct']:.3f}% >= "
                      f"{current_err:.3f}%); step {t:g}: {err:.3f}%")
@@ -552,7 +550,7 @@ class Learner:
             # lowers the train error further). Gentle control forces make every update short,
             # so without it the loop creeps (tension sphere: -2 % of the error per iteration).
             for t in opt.extend:
-                q = _blend(params, cands_best[3], t)
+                q = _blend(params, full, t)
                 e2, errs2, sims2 = check(t, q, err)  # below err it was simulated to the end
                 if not e2 < err:
                     break
@@ -561,7 +559,6 @@ class Learner:
         info["steps_tried"] = tried
         if not err < current_err:
             info["update_step"] = 0.0
-            full, full_sims = cands_best[3], cands_best[6]
             if full_sims is None and np.isfinite(cands_best[0]) and opt.retry_rejected:
                 full_sims = self._train_error(full)[2]  # stopped early: its motion for the next basis
             return None, info, (full, full_sims)

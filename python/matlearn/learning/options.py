@@ -30,10 +30,8 @@ class LearnOptions:
     whose train error is lower than the current one: one fit + one forward simulation per
     iteration instead of one per candidate, for large cases, bench/learning_scale.py); patience: iterations without
     improvement before stopping; seed: k-means seed; backtrack: shortened update steps tried
-    when the full update does not lower the train error, as fractions of the full update (until
-    session 13 each try blended from the previous one, so the default's steps were effectively
-    0.5 and 0.125, recorded as 0.5 and 0.25; the halving ladder keeps 0.125 and adds 0.25); track: tracking options for cloud
-    recordings (None: defaults); tangent_stride: frames sharing one nominal tangent evaluation
+    when the full update does not lower the train error, as fractions of the full update (a
+    halving ladder by default); track: tracking options for cloud recordings (None: defaults); tangent_stride: frames sharing one nominal tangent evaluation
     in the space-time Jacobian (1: every frame; the per-frame tangents dominate the space-time
     cost of long recordings at 1 ms, bench/learning_scale.py measures the tradeoff);
     refresh_correspondences: for train recordings tracked from point clouds, rounds of
