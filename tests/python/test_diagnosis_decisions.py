@@ -162,3 +162,46 @@ def test_a_refuted_linearisation_gets_every_credited_family_simulated():
     # fits that gain about what the linearisation predicted: nothing more is simulated
     fits["stiffness_scale"] = SimpleNamespace(rss=9.0)
     assert _linearisation_refuted(fits, cheap, rss0, tol, order) == ([], [])
+
+
+def test_a_refuted_shortlisted_family_gives_its_place_to_the_next():
+    """pipeline._shortfall_replacements: a shortlisted family whose simulation gains less than
+    SHORTFALL x its linear prediction frees its place for the next family in the linear order
+    (random seed 5's compression bar: Rayleigh and strain-dependent damping predicted 1.39e-2
+    and 1.37e-2 from 2.21e-2 and gained nothing simulated; compression, predicted 1.48e-2, was
+    never simulated). A family gaining what it predicted frees nothing; the nested smaller family
+    of a replacement comes first; density (the scale's mirror) and families predicted to gain
+    no more than the noise are never brought in."""
+    from types import SimpleNamespace
+
+    from matlearn.diagnosis.pipeline import SHORTFALL, _shortfall_replacements
+
+    rss0 = 2.209e-2
+    cheap = {"heterogeneity": (None, 1.079e-2), "rayleigh_damping": (None, 1.388e-2),
+             "strain_dependent_damping": (None, 1.371e-2), "compression_nonlinearity": (None, 1.479e-2),
+             "tension_nonlinearity": (None, 1.676e-2), "support_compliance": (None, 2.141e-2),
+             "poisson_ratio": (None, 2.2085e-2), "stiffness_scale": (None, 2.208e-2), "density": (None, 2.0e-2)}
+    order = ["heterogeneity", "rayleigh_damping", "strain_dependent_damping", "compression_nonlinearity",
+             "density", "tension_nonlinearity", "support_compliance", "poisson_ratio", "stiffness_scale"]
+    tol = dict.fromkeys(cheap, 1e-4)
+    shortlist = ["heterogeneity", "rayleigh_damping", "strain_dependent_damping", "stiffness_scale"]
+    fits = {"heterogeneity": SimpleNamespace(rss=1.21e-2), "rayleigh_damping": SimpleNamespace(rss=2.209e-2),
+            "strain_dependent_damping": SimpleNamespace(rss=2.209e-2), "stiffness_scale": SimpleNamespace(rss=2.207e-2)}
+    assert _shortfall_replacements(fits, cheap, rss0, tol, order, shortlist) == \
+        ["compression_nonlinearity", "tension_nonlinearity"]
+    # one refuted family frees one place
+    fits["strain_dependent_damping"] = SimpleNamespace(rss=1.45e-2)
+    assert _shortfall_replacements(fits, cheap, rss0, tol, order, shortlist) == ["compression_nonlinearity"]
+    # a gain just at SHORTFALL x the prediction is not refuted
+    pred = rss0 - cheap["rayleigh_damping"][1]
+    fits["rayleigh_damping"] = SimpleNamespace(rss=rss0 - 1.01 * SHORTFALL * pred)
+    assert _shortfall_replacements(fits, cheap, rss0, tol, order, shortlist) == []
+    # a nested larger family brought in comes after its smaller one
+    fits = {"heterogeneity": SimpleNamespace(rss=2.2e-2), "stiffness_scale": SimpleNamespace(rss=2.207e-2)}
+    order2 = ["heterogeneity", "strain_dependent_damping", "rayleigh_damping", "compression_nonlinearity"]
+    assert _shortfall_replacements(fits, cheap, rss0, tol, order2, ["heterogeneity", "stiffness_scale"]) == \
+        ["rayleigh_damping", "strain_dependent_damping"]
+    # nothing left that is predicted to gain beyond the noise: nothing to simulate
+    cheap2 = {n: (None, rss0 - 1e-5) for n in cheap}
+    cheap2["heterogeneity"] = (None, 1.0e-2)
+    assert _shortfall_replacements(fits, cheap2, rss0, tol, order, ["heterogeneity", "stiffness_scale"]) == []
