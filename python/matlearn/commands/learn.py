@@ -101,12 +101,12 @@ def register(subparsers) -> None:
     p.add_argument("--no-distill", action="store_true", help="skip the MLP distillation")
     p.add_argument("--tangent-damping", action="store_true",
                    help="the stiffness-proportional Rayleigh damping acts on the corrected tangent "
-                        "(alpha_K K(nominal + correction)) instead of the nominal one; see README, "
+                        "(alpha_K K(nominal + correction)) instead of the nominal one; see docs/results.md, "
                         "Learning")
     p.add_argument("--extend", type=float, nargs="*", default=[], metavar="T",
                    help="an update that lowers the train error is also tried at these multiples of "
                         "itself (e.g. 2 4), each kept while it lowers the train error further: fewer "
-                        "iterations, but the held-out error can rise (README, Learning); default none")
+                        "iterations, but the held-out error can rise (docs/results.md, Learning); default none")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--refresh-correspondences", type=int, default=0, metavar="N",
                    help="point clouds: rounds of re-estimating the correspondences at the space-time "

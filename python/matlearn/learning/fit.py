@@ -91,7 +91,7 @@ elastic and damping weights and the PSD projection is not linear; the normal equ
 damp with the current alpha_K + dalpha through the derivative of the projection at the current
 total tangent, the damping columns act on the current corrected tangent, and the data lose the
 difference, so the design equals the model's force at the current weights and errs to second
-order around them (tests/python/test_tangent_damping.py). Measured on the spheres (README).
+order around them (tests/python/test_tangent_damping.py). Measured on the spheres (docs/results.md).
 """
 from __future__ import annotations
 

@@ -60,14 +60,14 @@ class LearnOptions:
     tangent_damping: the learned correction's elastic part also enters the stiffness-proportional
     Rayleigh damping, (alpha_K + dalpha) K_psd(nominal + correction) (`_core` Correction
     .tangent_damping; the fit linearises it at the current model). Off by default: on the edited
-    spheres of bench/learning_table.py it changed the learned errors by <= 0.05 % (README);
+    spheres of bench/learning_table.py it changed the learned errors by <= 0.05 % (docs/results.md);
     extend: longer steps along an update whose full step lowers the train error, as multiples of
     it (increasing, > 1), each checked by a forward simulation and kept while it lowers the train
     error further (a line search along the update). Off by default (()): with (2, 4) the tension
     sphere of bench/learning_table.py reaches a lower train error in 6 iterations instead of 20
     and the whole table runs in half the time, but the longer steps also amplify what the train
     recordings do not determine: the held-out error rose on the StVK bar, damping bar 1 and the
-    demo (README, Learning; bench/results/learning_table_extend.json)."""
+    demo (docs/results.md, Learning; bench/results/learning_table_extend.json)."""
 
     iterations: int = 8
     lam: float | None = None
