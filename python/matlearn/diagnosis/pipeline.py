@@ -282,6 +282,18 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             f"{', '.join(rest)} simulated too")
     for name in rest:
         simulate_fit(name)
+    # Likewise when no simulated fit explains the data: while the best of them still leaves a
+    # significant residual (beyond GAP_FACTOR x the conservative floor, the bar a gap must pass
+    # to be called significant) the linear order has not found an explanation and cannot rule
+    # the other families out (random seed 6's soft support r6_01: the stiffness scale predicted
+    # 16.3 from 24.9 and reached 0.391, 2.8x its prediction, 43x the floor; the clamp layer,
+    # predicted 18.3, was never simulated; simulated, it reaches 0.081)
+    rest = [] if nominal_fits else _still_unexplained(fits, cheap, rss0, order, GAP_FACTOR * rss_wide)
+    if rest:
+        say(f"the simulated fits leave {min(f.rss for f in fits.values()):.3e} > {GAP_FACTOR:g}x the "
+            f"conservative floor: {', '.join(rest)} simulated too")
+    for name in rest:
+        simulate_fit(name)
     if "stiffness_scale" in fits:
         f = fits["stiffness_scale"]
         fits["density"] = fitting.Fit("density", {"density": -f.params["stiffness_scale"]}, f.rss,
@@ -433,6 +445,16 @@ def _linearisation_refuted(fits, cheap, rss0, tol, order):
         return [], []
     rest = [n for n in order if n not in fits and n != "density" and cheap[n][1] < rss0]
     return surprised, sorted(rest, key=lambda n: n in NESTS)
+
+
+def _still_unexplained(fits, cheap, rss0, order, bound):
+    """The families still to simulate because every simulated fit leaves more than `bound`:
+    every family not simulated yet that the linear fits credit with any gain, nested (smaller)
+    ones first; none once a simulated fit is within the bound."""
+    if not fits or min(f.rss for f in fits.values()) <= bound:
+        return []
+    rest = [n for n in order if n not in fits and n != "density" and cheap[n][1] < rss0]
+    return sorted(rest, key=lambda n: n in NESTS)
 
 
 def _shortfall_replacements(fits, cheap, rss0, tol, order, shortlist):
