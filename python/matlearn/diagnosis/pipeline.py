@@ -264,7 +264,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # A shortlisted family whose simulation gains far less than its linear prediction (e.g. a
     # damping fit whose linearised move leaves the physical range and is clipped away) held a
     # place another family may deserve: the next ones in the linear order are simulated in its
-    # stead (named by the random suite seed 5's compression bar r5_08: Rayleigh predicted
+    # stead (found on random seed 5's compression bar r5_08: Rayleigh predicted
     # 1.39e-2 from 2.21e-2, simulated 2.21e-2, while compression, predicted 1.48e-2, was never
     # simulated)
     for name in _shortfall_replacements(fits, cheap, rss0, tol, order, to_refine):
