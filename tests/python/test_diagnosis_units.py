@@ -5,7 +5,8 @@ import pytest
 from matlearn import meshes
 from matlearn.diagnosis import fitting, where
 from matlearn.diagnosis.effects import EffectContext, build_model, clamp_layer
-from matlearn.diagnosis.problem import refine_tets
+from matlearn.diagnosis.problem import Problem, refine_tets
+from matlearn.scene import Scene, vertices_in_box
 from matlearn.materials import Damping, Material
 
 
@@ -35,6 +36,31 @@ def test_refine_tets_conserves_volume_and_is_conforming():
     F = np.asarray(m.surface_faces)
     area = 0.5 * np.linalg.norm(np.cross(Vn[F[:, 1]] - Vn[F[:, 0]], Vn[F[:, 2]] - Vn[F[:, 0]]), axis=1)
     np.testing.assert_allclose(area.sum(), 2 * (0.2 * 0.1 * 2 + 0.1 * 0.1), rtol=1e-12)
+
+
+def test_refined_scene_clamps_the_box_not_only_the_coarse_clamp():
+    # a box ending between two coarse vertex layers: the refined mesh has midpoints inside it
+    # whose edges leave it; they are clamped (the body is held wherever the box is), so the
+    # refined reference is held as firmly as a finer recorded body
+    mesh = meshes.bar(0.1, 0.02, 0.02, (4, 1, 1))
+    box = [[-1.0, -1.0, -1.0], [0.04, 1.0, 1.0]]
+    mat = Material("corotated", 1e5, 0.3, 1000.0)
+
+    def refined(fixed_box):
+        P = Problem.__new__(Problem)
+        P.scene = Scene(mesh, mat, Damping(0.0, 0.0), vertices_in_box(mesh.vertices, box),
+                        fixed_box=fixed_box)
+        return P.refined_scene()
+
+    boxed, listed = refined(box), refined(None)
+    V = np.asarray(boxed.mesh.vertices)
+    assert np.array_equal(boxed.fixed, vertices_in_box(V, box))
+    assert np.array_equal(np.asarray(listed.mesh.vertices), V)
+    # the vertex-list rule: midpoints of clamped edges only (x <= 0.025 here)
+    assert np.array_equal(listed.fixed, np.flatnonzero(V[:, 0] <= 0.025 + 1e-12))
+    assert set(listed.fixed) < set(boxed.fixed)
+    assert np.isclose(V[boxed.fixed, 0].max(), 0.0375)
+    assert boxed.fixed_box == box and listed.fixed_box is None
 
 
 def test_stiffness_and_region_families_scale_elastic_forces_exactly():
