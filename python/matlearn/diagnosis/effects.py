@@ -140,13 +140,11 @@ def build_model(ctx: EffectContext, params: dict):
     if unknown:
         raise ValueError(f"unknown effect families {sorted(unknown)}")
     m = ctx.mesh.num_tets
-    mat, dmp = ctx.material, ctx.damping
+    mat = ctx.material
     E = np.broadcast_to(np.asarray(mat.youngs_modulus, float), (m,)).copy()
     nu = np.broadcast_to(np.asarray(mat.poisson_ratio, float), (m,)).copy()
     rho = np.broadcast_to(np.asarray(mat.density, float), (m,)).copy()
     E0 = float(np.median(E))
-    aM, aK = float(dmp.alpha_mass), float(dmp.alpha_stiffness)
-    kpoly = list(dmp.stiffness_poly)
     tension = compression = ()
 
     def th(name):
@@ -168,28 +166,60 @@ def build_model(ctx: EffectContext, params: dict):
         nu = np.clip(nu + 0.1 * th("poisson_ratio")[0], 0.0, 0.49)
     if "density" in params:
         rho *= np.exp(np.clip(th("density")[0], -3, 3))
-    if "rayleigh_damping" in params:
-        t = th("rayleigh_damping")
-        aM = max(aM + t[0] * 0.1 * ctx.omega, 0.0)
-        aK = max(aK + t[1] * 0.1 / ctx.omega, 0.0)
-    if "strain_dependent_damping" in params:
-        t = th("strain_dependent_damping")
-        aM = max(aM + t[0] * 0.1 * ctx.omega, 0.0)
-        aK = max(aK + t[1] * 0.1 / ctx.omega, 0.0)
-        kpoly = list(kpoly) + [0.0] * max(0, 2 - len(kpoly))
-        for k in range(2):
-            kpoly[k] += t[k + 2] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1)
+    damping = damping_of(ctx, params)
     if "tension_nonlinearity" in params:
         tension = th("tension_nonlinearity")
     if "compression_nonlinearity" in params:
         compression = th("compression_nonlinearity")
 
     material = Material(mat.model, E, nu, rho, list(mat.edits))
-    damping = Damping(aM, aK, list(dmp.mass_poly), kpoly)
     correction = None
     if len(tension) or len(compression):
         correction = _one_sided_poly(ctx.d_ref, E0, tension, compression)
     return make_model(ctx.mesh, material, damping, correction)
+
+
+def damping_of(ctx: EffectContext, params: dict) -> Damping:
+    """The damping of the model `build_model(ctx, params)`: the nominal Rayleigh coefficients
+    moved by the damping families (alpha_M by theta 0.1 omega, alpha_K by theta 0.1 / omega, the
+    alpha_K polynomial of s1 by theta 0.1 / omega / d_ref^k), clamped at 0."""
+    dmp = ctx.damping
+    aM, aK = float(dmp.alpha_mass), float(dmp.alpha_stiffness)
+    kpoly = list(dmp.stiffness_poly)
+    for name in ("rayleigh_damping", "strain_dependent_damping"):
+        if name not in params:
+            continue
+        t = np.asarray(params[name], float)
+        aM = max(aM + t[0] * 0.1 * ctx.omega, 0.0)
+        aK = max(aK + t[1] * 0.1 / ctx.omega, 0.0)
+        if name == "strain_dependent_damping":
+            kpoly = list(kpoly) + [0.0] * max(0, 2 - len(kpoly))
+            for k in range(2):
+                kpoly[k] += t[k + 2] * 0.1 / ctx.omega / ctx.d_ref ** (k + 1)
+    return Damping(aM, aK, list(dmp.mass_poly), kpoly)
+
+
+# unit steps of the damping coordinates (damping_coordinates): alpha_M, alpha_K and the two
+# alpha_K polynomial terms, each moved as the damping families' theta = 1 moves it
+DAMPING_STEPS = ({"rayleigh_damping": [1.0, 0.0]}, {"rayleigh_damping": [0.0, 1.0]},
+                 {"strain_dependent_damping": [0.0, 0.0, 1.0, 0.0]},
+                 {"strain_dependent_damping": [0.0, 0.0, 0.0, 1.0]})
+
+
+def damping_coordinates(ctx: EffectContext, params: dict) -> np.ndarray:
+    """(4,) how far the damping of `params` lies from the nominal one in the units of
+    DAMPING_STEPS (the clamps at 0 included): alpha_M, alpha_K, and the alpha_K polynomial's
+    linear and quadratic terms in s1 - 1."""
+    if "rayleigh_damping" not in params and "strain_dependent_damping" not in params:
+        return np.zeros(4)
+    d0, d = ctx.damping, damping_of(ctx, params)
+    p0 = list(d0.stiffness_poly) + [0.0] * max(0, 2 - len(d0.stiffness_poly))
+    p1 = list(d.stiffness_poly) + [0.0] * max(0, 2 - len(d.stiffness_poly))
+    unit = 0.1 / ctx.omega
+    return np.array([(d.alpha_mass - d0.alpha_mass) / (0.1 * ctx.omega),
+                     (d.alpha_stiffness - d0.alpha_stiffness) / unit,
+                     (p1[0] - p0[0]) * ctx.d_ref / unit,
+                     (p1[1] - p0[1]) * ctx.d_ref ** 2 / unit])
 
 
 def describe(name: str, theta, ctx: EffectContext) -> dict:

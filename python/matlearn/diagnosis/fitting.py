@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .effects import FAMILIES, NUISANCE, build_model, n_params
+from .effects import FAMILIES, NUISANCE, build_model, damping_coordinates, n_params
 from .problem import stack_residuals
 
 
@@ -31,7 +31,7 @@ class Fit:
 
 
 def residual_of(problem, ctx, params: dict, recs=None) -> np.ndarray:
-    return marker_residual(problem, build_model(ctx, params), recs)
+    return marker_residual(problem, build_model(ctx, params), recs, damping=damping_coordinates(ctx, params))
 
 
 def residual_pair(problem, ctx, params: dict, recs=None):
@@ -43,7 +43,7 @@ def residual_pair(problem, ctx, params: dict, recs=None):
     recs = problem.train if recs is None else recs
     model = build_model(ctx, params)
     raw = stack_residuals(recs, lambda rec: predict(problem, model, rec, True), problem.object_size)
-    return debias(problem, raw, recs), raw
+    return debias(problem, raw, recs, damping_coordinates(ctx, params)), raw
 
 
 def rest_offset(problem, rec) -> np.ndarray:
@@ -64,26 +64,44 @@ def predict(problem, model, rec, fast: bool = True) -> np.ndarray:
     return problem.predict(model, rec, fast) + rest_offset(problem, rec)[None]
 
 
-def marker_residual(problem, model, recs=None, fast: bool = True) -> np.ndarray:
+def marker_residual(problem, model, recs=None, fast: bool = True, damping=None) -> np.ndarray:
     """Stacked (prediction - observation) over seen markers of `recs` (default train), in units
-    of the object size; a failed simulation gives a large constant residual."""
+    of the object size; a failed simulation gives a large constant residual. damping: the
+    model's damping coordinates (effects.damping_coordinates; None: the nominal damping), which
+    the discrepancy removed follows (debias)."""
     recs = problem.train if recs is None else recs
     r = stack_residuals(recs, lambda rec: predict(problem, model, rec, fast), problem.object_size)
-    return debias(problem, r, recs)
+    return debias(problem, r, recs, damping)
 
 
-def debias(problem, r: np.ndarray, recs) -> np.ndarray:
+def discrepancy(problem, recs, damping=None):
+    """The stacked refined-minus-coarse marker discrepancy b of `recs` for a model whose damping
+    lies at `damping` (effects.damping_coordinates) from the nominal one: b0 + B d, B its
+    measured change per unit damping coordinate (problem.disc_bias_damping, a secant over one
+    unit, set by discretisation.discretisation); None when `recs` have none."""
+    bias = getattr(problem, "disc_bias", None)
+    if not bias or any(id(rec) not in bias for rec in recs):
+        return None
+    b = np.concatenate([bias[id(rec)] for rec in recs])
+    cols = getattr(problem, "disc_bias_damping", None)
+    if damping is not None and cols and all(id(rec) in cols for rec in recs) and np.any(damping):
+        b = b + np.concatenate([cols[id(rec)] for rec in recs]) @ np.asarray(damping, float)
+    return b
+
+
+def debias(problem, r: np.ndarray, recs, damping=None) -> np.ndarray:
     """The residual `r` of `recs` with the mesh's discretisation discrepancy removed (multi-
     fidelity additive correction): r + w b, b the stacked (refined - coarse) nominal marker
     discrepancy of the recordings (problem.disc_bias, {id(rec): vector}, set by
     discretisation.discretisation), w the least-squares weight for this very residual clipped to
     problem.disc_weight_range (how far the truth lies beyond the refined mesh: a bounded
     nuisance profiled out of every fit, so it cannot invent an effect and no family can gain by
-    mimicking it). Recordings without a discrepancy (held-out ones) are returned unchanged."""
-    bias = getattr(problem, "disc_bias", None)
-    if not bias or any(id(rec) not in bias for rec in recs):
+    mimicking it). Recordings without a discrepancy (held-out ones) are returned unchanged.
+    damping: the damping coordinates of the model that produced `r`: the discrepancy follows
+    them (`discrepancy`; a damped motion's mesh error decays with it)."""
+    b = discrepancy(problem, recs, damping)
+    if b is None:
         return r
-    b = np.concatenate([bias[id(rec)] for rec in recs])
     bb = float(b @ b)
     if len(b) != len(r) or bb <= 0.0:
         return r
