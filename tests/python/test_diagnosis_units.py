@@ -295,3 +295,87 @@ def test_the_discretisation_offset_is_found_when_local_steps_from_zero_stall(tmp
     assert ref2 == pytest.approx(ref, abs=0.1) and ref2 < -0.05
     assert rng2[1] - rng2[0] > 0.25 * abs(ref2)  # not collapsed to a point
     assert bb2 <= 1.05 * bb
+
+
+def test_damping_coordinates_follow_the_damping_families_and_their_clamps():
+    """effects.damping_coordinates: where a model's damping lies from the nominal one, in the
+    units of the families' parameters (DAMPING_STEPS), the clamp of a coefficient at 0 included."""
+    from matlearn.diagnosis.effects import DAMPING_STEPS, damping_coordinates, damping_of
+
+    ctx = _ctx(omega=20.0, d_ref=0.05)
+    ctx.damping = Damping(0.5, 0.004)
+    np.testing.assert_allclose(damping_coordinates(ctx, {}), 0.0)
+    np.testing.assert_allclose(damping_coordinates(ctx, {"stiffness_scale": [0.3]}), 0.0)
+    np.testing.assert_allclose(damping_coordinates(ctx, {"rayleigh_damping": [0.5, -0.3]}), [0.5, -0.3, 0, 0])
+    np.testing.assert_allclose(damping_coordinates(ctx, {"strain_dependent_damping": [0.2, 0.1, 1.0, -0.5]}),
+                               [0.2, 0.1, 1.0, -0.5], atol=1e-12)
+    both = {"rayleigh_damping": [0.5, 0.0], "strain_dependent_damping": [0.2, 0.1, 1.0, 0.0]}
+    np.testing.assert_allclose(damping_coordinates(ctx, both), [0.7, 0.1, 1.0, 0.0], atol=1e-12)
+    # alpha_M = 0.5 - 5 * 0.1 * 20 clamps at 0: the coordinate is the clamped move, -0.25
+    np.testing.assert_allclose(damping_coordinates(ctx, {"rayleigh_damping": [-5.0, 0.0]}), [-0.25, 0, 0, 0])
+    for k, step in enumerate(DAMPING_STEPS):
+        np.testing.assert_allclose(damping_coordinates(ctx, step), np.eye(4)[k], atol=1e-12)
+    # damping_of is the damping build_model uses: the forces agree
+    x = np.asarray(ctx.mesh.vertices).copy()
+    v = _deformed(ctx.mesh, 2, 0.01) - x
+    p = {"rayleigh_damping": [0.7, 0.4]}
+    m_ref = build_model(ctx, p)
+    d = damping_of(ctx, p)
+    m_dmp = build_model(EffectContext(ctx.mesh, ctx.material, d, ctx.fixed, omega=20.0, d_ref=0.05), {})
+    np.testing.assert_allclose(np.asarray(m_ref.forces(x, v)), np.asarray(m_dmp.forces(x, v)), rtol=1e-12)
+
+
+def test_debias_removes_the_discrepancy_at_the_models_own_damping():
+    """fitting.discrepancy / debias with damping coordinates: b0 + B d is removed (the weight
+    profiled as before); without coordinates b0 alone."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(5)
+    recs = [SimpleNamespace(), SimpleNamespace()]
+    b = [rng.standard_normal(24), rng.standard_normal(12)]
+    B = [rng.standard_normal((24, 4)), rng.standard_normal((12, 4))]
+    prob = SimpleNamespace(disc_bias={id(r): x for r, x in zip(recs, b)},
+                           disc_bias_damping={id(r): x for r, x in zip(recs, B)}, disc_weight_range=(0.55, 4 / 3))
+    d = np.array([0.8, -0.2, 0.0, 0.3])
+    bd = np.concatenate(b) + np.concatenate(B) @ d
+    np.testing.assert_allclose(fitting.discrepancy(prob, recs, d), bd)
+    np.testing.assert_allclose(fitting.discrepancy(prob, recs), np.concatenate(b))
+    effect = rng.standard_normal(36)
+    effect -= (effect @ bd) / (bd @ bd) * bd
+    np.testing.assert_allclose(fitting.debias(prob, effect - 0.9 * bd, recs, d), effect, atol=1e-12)
+    # the nominal discrepancy does not remove it
+    assert np.linalg.norm(fitting.debias(prob, effect - 0.9 * bd, recs) - effect) > 0.1
+
+
+def test_the_discretisation_discrepancy_follows_the_damping(tmp_path):
+    """discretisation.discretisation measures how the refined-minus-coarse discrepancy changes
+    per unit of each damping coordinate. More mass damping damps the mesh's error with the motion
+    (|b| shrinks), and the measured secant predicts the discrepancy re-measured at half a unit
+    better than the nominal one does."""
+    from dataclasses import replace
+
+    from diagnosis_cases import tiny_case
+
+    from matlearn.diagnosis import discretisation as disc
+    from matlearn.diagnosis.effects import damping_of
+
+    path = tiny_case(tmp_path, "bar", E_scale=1.0, cells=(5, 1, 1))
+    P = Problem(path)
+    sc = P.scene
+    ctx = EffectContext(sc.mesh, sc.material, sc.damping, sc.fixed, omega=60.0)
+    new, _, _, (b0, _), _ = disc.discretisation(P, ctx, lambda m: None)
+    B = np.concatenate([P.disc_bias_damping[id(r)] for r in P.train])
+    assert B.shape == (len(b0), disc.FOLLOWED)
+    assert np.linalg.norm(b0 + B[:, 0]) < 0.97 * np.linalg.norm(b0)  # (part of b is the static pose)
+    # re-measure b at half a unit of alpha_M, as discretisation does
+    fine = Problem.__new__(Problem)
+    fine.__dict__.update(P.__dict__)
+    fine.scene, fine._emb, fine._rest_offsets, fine.disc_bias, fine._replays = P.refined_scene(), {}, {}, {}, {}
+    half = damping_of(ctx, {"rayleigh_damping": [0.5, 0.0]})
+    moved = replace(ctx, damping=half)
+    moved.clamp_layer = ctx.clamp_layer
+    saved, P.disc_bias = P.disc_bias, {}
+    rf = fitting.marker_residual(fine, fine.scene.model(damping=half), P.train)
+    b_half = rf - fitting.residual_of(P, moved, {"stiffness_scale": [new.offset_reference]}, P.train)
+    P.disc_bias = saved
+    assert np.linalg.norm(b_half - (b0 + 0.5 * B[:, 0])) < 0.5 * np.linalg.norm(b_half - b0)

@@ -76,17 +76,33 @@ def marker_residual(problem, model, recs=None, fast: bool = True, damping=None) 
 
 def discrepancy(problem, recs, damping=None):
     """The stacked refined-minus-coarse marker discrepancy b of `recs` for a model whose damping
-    lies at `damping` (effects.damping_coordinates) from the nominal one: b0 + B d, B its
-    measured change per unit damping coordinate (problem.disc_bias_damping, a secant over one
-    unit, set by discretisation.discretisation); None when `recs` have none."""
+    lies at `damping` (effects.damping_coordinates) from the nominal one: b0 + B g(d), B its
+    measured change over the first unit of each followed coordinate (problem.disc_bias_damping)
+    and g the geometric count of units (`geometric`, with problem.disc_bias_ratio, the measured
+    ratio of successive unit changes; both set by discretisation.discretisation); None when
+    `recs` have none."""
     bias = getattr(problem, "disc_bias", None)
     if not bias or any(id(rec) not in bias for rec in recs):
         return None
     b = np.concatenate([bias[id(rec)] for rec in recs])
     cols = getattr(problem, "disc_bias_damping", None)
     if damping is not None and cols and all(id(rec) in cols for rec in recs) and np.any(damping):
-        b = b + np.concatenate([cols[id(rec)] for rec in recs]) @ np.asarray(damping, float)
+        B = np.concatenate([cols[id(rec)] for rec in recs])
+        d = np.asarray(damping, float)[:B.shape[1]]
+        b = b + B @ geometric(d, getattr(problem, "disc_bias_ratio", None))
     return b
+
+
+def geometric(d: np.ndarray, ratio=None) -> np.ndarray:
+    """Units of change of a quantity whose change over each further unit of d is `ratio` times
+    that over the last: (1 - ratio^d) / (1 - ratio), d itself where ratio is 1 (or None)."""
+    d = np.asarray(d, float)
+    if ratio is None:
+        return d
+    q = np.asarray(ratio, float)[:len(d)]
+    lin = np.abs(1.0 - q) < 1e-9
+    out = np.where(lin, d, (1.0 - np.power(q, d)) / np.where(lin, 1.0, 1.0 - q))
+    return out
 
 
 def debias(problem, r: np.ndarray, recs, damping=None) -> np.ndarray:

@@ -540,12 +540,18 @@ def _credit_columns(P, J_raw, r0_raw):
     if not cols or b0 is None or any(id(rec) not in cols for rec in P.train):
         return J_raw
     B = np.concatenate([cols[id(rec)] for rec in P.train])
+    q = getattr(P, "disc_bias_ratio", None)
+    if q is not None:  # the slope of fitting.geometric at d = 0: -ln q / (1 - q), 1 at q = 1
+        q = np.asarray(q, float)
+        B = B * np.where(np.abs(1 - q) < 1e-9, 1.0, -np.log(q) / np.where(np.abs(1 - q) < 1e-9, 1.0, 1 - q))
     lo, hi = P.disc_weight_range
     w0 = float(np.clip(-float(r0_raw @ b0) / max(float(b0 @ b0), 1e-300), lo, hi))
     out = dict(J_raw)
     for name, k in (("rayleigh_damping", 2), ("strain_dependent_damping", 4)):
         if name in out:
-            out[name] = np.asarray(out[name], float) + w0 * B[:, :k]
+            k = min(k, B.shape[1])
+            out[name] = np.asarray(out[name], float)
+            out[name][:, :k] = out[name][:, :k] + w0 * B[:, :k]
     return out
 
 

@@ -57,7 +57,8 @@ class Problem:
         self.memo_hits = 0
         # the mesh's discretisation discrepancy removed from train residuals (fitting.debias)
         self.disc_bias = {}
-        self.disc_bias_damping = {}
+        self.disc_bias_damping = {}  # its change with the damping (fitting.discrepancy)
+        self.disc_bias_ratio = None
         self.disc_weight_range = (0.0, 0.0)
 
     @property
