@@ -325,6 +325,20 @@ def test_damping_coordinates_follow_the_damping_families_and_their_clamps():
     np.testing.assert_allclose(np.asarray(m_ref.forces(x, v)), np.asarray(m_dmp.forces(x, v)), rtol=1e-12)
 
 
+def test_geometric_units_of_a_decaying_change():
+    """fitting.geometric: a change whose every further unit is `ratio` times the last: 1 at one
+    unit, 1 + q at two, the plain count at q = 1, and its slope at 0 is -ln q / (1 - q)."""
+    q = np.array([0.5, 1.0])
+    np.testing.assert_allclose(fitting.geometric(np.array([1.0, 1.0]), q), [1.0, 1.0])
+    np.testing.assert_allclose(fitting.geometric(np.array([2.0, 2.0]), q), [1.5, 2.0])
+    np.testing.assert_allclose(fitting.geometric(np.array([3.0, -1.5]), q), [1.75, -1.5])
+    np.testing.assert_allclose(fitting.geometric(np.array([-1.0, 0.0]), q), [-2.0, 0.0])  # one unit less: -1/q
+    h = 1e-6
+    slope = (fitting.geometric(np.array([h, h]), q) - fitting.geometric(np.array([-h, -h]), q)) / (2 * h)
+    np.testing.assert_allclose(slope, [-np.log(0.5) / 0.5, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(fitting.geometric(np.array([0.7]), None), [0.7])
+
+
 def test_debias_removes_the_discrepancy_at_the_models_own_damping():
     """fitting.discrepancy / debias with damping coordinates: b0 + B d is removed (the weight
     profiled as before); without coordinates b0 alone."""
@@ -363,7 +377,10 @@ def test_the_discretisation_discrepancy_follows_the_damping(tmp_path):
     P = Problem(path)
     sc = P.scene
     ctx = EffectContext(sc.mesh, sc.material, sc.damping, sc.fixed, omega=60.0)
-    new, _, _, (b0, _), _ = disc.discretisation(P, ctx, lambda m: None)
+    _, _, _, (b_off, _), _ = disc.discretisation(P, ctx, lambda m: None)
+    assert not P.disc_bias_damping and P.disc_bias_ratio is None  # off by default
+    new, _, _, (b0, _), _ = disc.discretisation(P, ctx, lambda m: None, follow_damping=True)
+    np.testing.assert_allclose(b0, b_off)  # the nominal discrepancy itself is unchanged
     B = np.concatenate([P.disc_bias_damping[id(r)] for r in P.train])
     assert B.shape == (len(b0), disc.FOLLOWED)
     assert np.linalg.norm(b0 + B[:, 0]) < 0.97 * np.linalg.norm(b0)  # (part of b is the static pose)
@@ -378,4 +395,9 @@ def test_the_discretisation_discrepancy_follows_the_damping(tmp_path):
     rf = fitting.marker_residual(fine, fine.scene.model(damping=half), P.train)
     b_half = rf - fitting.residual_of(P, moved, {"stiffness_scale": [new.offset_reference]}, P.train)
     P.disc_bias = saved
-    assert np.linalg.norm(b_half - (b0 + 0.5 * B[:, 0])) < 0.5 * np.linalg.norm(b_half - b0)
+    g = fitting.geometric(np.array([0.5, 0.0]), P.disc_bias_ratio)
+    assert 0.2 <= P.disc_bias_ratio[0] <= 1.0 and g[1] == 0.0
+    assert np.linalg.norm(b_half - (b0 + g[0] * B[:, 0])) < 0.5 * np.linalg.norm(b_half - b0)
+    # and fitting.discrepancy is that model
+    d = np.array([0.5, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(fitting.discrepancy(P, P.train, d), b0 + g[0] * B[:, 0], atol=1e-12)

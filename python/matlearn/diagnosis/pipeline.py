@@ -88,14 +88,18 @@ def dominant_omega(problem) -> float:
 
 
 def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 16,
-             refine_top: int = 3, report: bool = True, residual_source: str = "constrained") -> dict:
+             refine_top: int = 3, report: bool = True, residual_source: str = "constrained",
+             follow_damping: bool | None = None) -> dict:
     """Diagnose the scene's nominal model against its train recordings; write
     out_dir/diagnosis.json (formats.md), report.html and residual .vtu files; return the dict.
 
     residual_source: where the "where" control forces come from: "constrained" (a simulation
     prescribing the marker-nearest vertices; cheap) or "spacetime" (the learning step's reduced
     space-time optimisation; full-space forces, ~5x the cost). patches: spatial patches whose
-    stiffness sensitivities locate a heterogeneity; refine_top: families refined by simulation."""
+    stiffness sensitivities locate a heterogeneity; refine_top: families refined by simulation.
+    follow_damping: the discretisation discrepancy removed follows each candidate's Rayleigh
+    damping, with each fit's own floor (discretisation._damping_columns; default
+    discretisation.DAMPING_FOLLOWS, off: an experiment of session 16, docs/results.md)."""
     say = _printer(progress)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,7 +135,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # ---- discretisation-compensated baseline and the floor
     sigma = P.noise_sigma() / P.object_size
     base_ctx, (rss_disc, rss_disc_wide), theta_disc, (d_res, d_scale), rss_nominal_raw = \
-        discretisation(P, ctx, say)
+        discretisation(P, ctx, say, follow_damping)
     ctx = base_ctx
     r0, r0_raw = fitting.residual_pair(P, ctx, {})
     rss0 = float(r0 @ r0)
