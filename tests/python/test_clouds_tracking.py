@@ -12,7 +12,7 @@ from matlearn import _core, meshes
 from matlearn.clouds.ingest import markers_scene
 from matlearn.clouds.scanner import (Camera, ScanSettings, default_cameras, scan_recording, scan_sequence,
                                      write_cloud_folder)
-from matlearn.clouds.tracking import TrackOptions, track, tracked_markers
+from matlearn.clouds.tracking import TrackOptions, track
 from matlearn.materials import Damping, Material, make_model
 from matlearn.recording import load_cloud_folder, load_recording, save_recording
 from matlearn.scene import Scene, load_scene, save_scene, vertices_in_box

@@ -137,14 +137,14 @@ def test_history_is_not_claimed_for_a_stateless_body(two_bodies):
 
 
 def test_a_refuted_linearisation_gets_every_credited_family_simulated():
-    """pipeline._linearisation_refuted: the linear predictions pick which families are
+    """selection._linearisation_refuted: the linear predictions pick which families are
     simulated; when a simulated fit gains far more than its prediction (a large gap, a poor
     linearisation) every family they credit with any gain is simulated too, nested ones first
     (independent tube on a soft pad: the stiffness scale predicted 9.75 from 10.44 and reached
     0.447; the clamp layer, predicted 8.08 and never simulated, reaches 0.156)."""
     from types import SimpleNamespace
 
-    from matlearn.diagnosis.pipeline import _linearisation_refuted
+    from matlearn.diagnosis.selection import _linearisation_refuted
 
     rss0 = 10.44
     cheap = {"rayleigh_damping": (None, 4.13), "strain_dependent_damping": (None, 3.90),
@@ -165,7 +165,7 @@ def test_a_refuted_linearisation_gets_every_credited_family_simulated():
 
 
 def test_a_refuted_shortlisted_family_gives_its_place_to_the_next():
-    """pipeline._shortfall_replacements: a shortlisted family whose simulation gains less than
+    """selection._shortfall_replacements: a shortlisted family whose simulation gains less than
     SHORTFALL x its linear prediction frees its place for the next family in the linear order
     (random seed 5's compression bar: Rayleigh and strain-dependent damping predicted 1.39e-2
     and 1.37e-2 from 2.21e-2 and gained nothing simulated; compression, predicted 1.48e-2, was
@@ -174,7 +174,7 @@ def test_a_refuted_shortlisted_family_gives_its_place_to_the_next():
     no more than the noise are never brought in."""
     from types import SimpleNamespace
 
-    from matlearn.diagnosis.pipeline import SHORTFALL, _shortfall_replacements
+    from matlearn.diagnosis.selection import SHORTFALL, _shortfall_replacements
 
     rss0 = 2.209e-2
     cheap = {"heterogeneity": (None, 1.079e-2), "rayleigh_damping": (None, 1.388e-2),
@@ -208,14 +208,14 @@ def test_a_refuted_shortlisted_family_gives_its_place_to_the_next():
 
 
 def test_a_significant_remainder_gets_every_credited_family_simulated():
-    """pipeline._still_unexplained: while every simulated fit leaves more than the bound (a
+    """selection._still_unexplained: while every simulated fit leaves more than the bound (a
     significant residual), the families the linear fits credit with any gain are simulated too,
     nested ones first (random seed 6's soft support: the stiffness scale reached 0.391 from
     24.9, 43x the floor, while the clamp layer, predicted 18.3, was never simulated; it reaches
     0.081); nothing once a simulated fit is within the bound."""
     from types import SimpleNamespace
 
-    from matlearn.diagnosis.pipeline import _still_unexplained
+    from matlearn.diagnosis.selection import _still_unexplained
 
     rss0 = 24.9
     cheap = {"heterogeneity": (None, 15.3), "stiffness_scale": (None, 16.3), "density": (None, 16.3),

@@ -2,19 +2,19 @@
 apart leads, and when a nested family's extra parameters count as evidence."""
 import numpy as np
 
-from matlearn.diagnosis import fitting, pipeline, ranking
+from matlearn.diagnosis import fitting, ranking, selection
 
 
 def _row(name, rss, n_eff=400.0, floor=1e-2):
-    dof = pipeline._dof(name)
+    dof = selection._dof(name)
     return {"name": name, "rss": rss, "score": fitting.score(rss, dof, n_eff, floor), "_fit": object(),
             "_criterion": (dof, n_eff, floor)}
 
 
 def _nested(rows, loo, credit, tol, **kw):
-    """pipeline._resolve_nested on `rows` with the leave-one-recording-out rss `loo` (name ->
+    """selection._resolve_nested on `rows` with the leave-one-recording-out rss `loo` (name ->
     rss), no log."""
-    return pipeline._resolve_nested(rows, lambda name, fit: loo[name], credit, tol, lambda m: None, **kw)
+    return selection._resolve_nested(rows, lambda name, fit: loo[name], credit, tol, lambda m: None, **kw)
 
 
 def test_a_tie_is_led_by_the_fit_that_is_best_once_charged_its_discretisation_credit():
@@ -42,7 +42,7 @@ def test_a_nested_family_needs_a_leave_one_out_gain_beyond_the_noise():
     # strain-dependent damping (contains Rayleigh damping) fits better than its credit and by the
     # criterion, but its leave-one-recording-out residual is lower only by a noise-sized amount
     rss_noise, n = 3.3e-3, 40000
-    tol = {nm: ranking.noise_tolerance(rss_noise, n, pipeline._dof(nm))
+    tol = {nm: ranking.noise_tolerance(rss_noise, n, selection._dof(nm))
            for nm in ("strain_dependent_damping", "rayleigh_damping")}
     credit = {"strain_dependent_damping": 2.6e-5, "rayleigh_damping": 2.1e-5}
     big = _row("strain_dependent_damping", 3.90e-3, n_eff=340, floor=3.4e-3)
@@ -106,7 +106,7 @@ def test_a_leading_poisson_ratio_with_its_offset_is_nested_over_the_uniform_scal
     # a parameter, and the criterion (BIC, n_eff 302) then prefers the scale
     rss_noise = 5.48e-3
     credit = {"poisson_ratio": 4.54e-6, "stiffness_scale": 3.4e-10}
-    tol = {n: ranking.noise_tolerance(rss_noise, 100000, pipeline._dof(n)) for n in credit}
+    tol = {n: ranking.noise_tolerance(rss_noise, 100000, selection._dof(n)) for n in credit}
     poisson = _row("poisson_ratio", 6.123e-3, n_eff=302, floor=5.568e-3)
     scale = _row("stiffness_scale", 6.262e-3, n_eff=302, floor=5.568e-3)
     assert ranking.beats(poisson, scale, credit, tol)  # the ranking alone: Poisson leads
@@ -155,11 +155,11 @@ def test_a_clamp_layer_fitted_stiffer_is_a_region_not_a_compliant_support():
     # named combined heterogeneity + tension plate: clamp layer 16x stiffer led, confounded with
     # a stiff region at the clamp; a support can only add compliance to the rigid clamp
     ranked = _side_rows(np.log(16.0), (np.log(2.5), np.log(0.85)), "support_compliance")
-    side = pipeline._support_or_region(ranked, _Ctx([1, 1, 0, 0]), lambda m: None)
+    side = selection._support_or_region(ranked, _Ctx([1, 1, 0, 0]), lambda m: None)
     assert side == {"heterogeneity": "support_compliance"} and ranked[0]["name"] == "heterogeneity"
     # a softer clamp layer stays the support
     ranked = _side_rows(np.log(0.5), (np.log(2.5), np.log(0.85)), "support_compliance")
-    assert pipeline._support_or_region(ranked, _Ctx([1, 1, 0, 0]), lambda m: None) == {}
+    assert selection._support_or_region(ranked, _Ctx([1, 1, 0, 0]), lambda m: None) == {}
     assert ranked[0]["name"] == "support_compliance"
 
 
@@ -167,13 +167,13 @@ def test_a_soft_region_at_the_clamp_is_reported_as_a_compliant_support():
     # r1_04: a soft layer thinner than the model's clamp-layer elements is located as a soft band
     # next to the clamp; with the clamp layer also fitted softer it is the support's compliance
     ranked = _side_rows(np.log(0.57), (np.log(0.54), np.log(0.92)), "heterogeneity")
-    side = pipeline._support_or_region(ranked, _Ctx([0, 1, 0, 0]), lambda m: None)
+    side = selection._support_or_region(ranked, _Ctx([0, 1, 0, 0]), lambda m: None)
     assert side == {"support_compliance": "heterogeneity"}
     assert ranked[0]["name"] == "support_compliance"
     # a soft region away from the clamp (tets 2-3 share no vertex with the clamp layer) stays a region
     ranked = _side_rows(np.log(0.57), (np.log(0.54), np.log(0.92)), "heterogeneity")
-    assert pipeline._support_or_region(ranked, _Ctx([0, 0, 1, 1]), lambda m: None) == {}
+    assert selection._support_or_region(ranked, _Ctx([0, 0, 1, 1]), lambda m: None) == {}
     # a stiff region at the clamp stays a region
     ranked = _side_rows(np.log(0.57), (np.log(1.8), np.log(0.92)), "heterogeneity")
-    assert pipeline._support_or_region(ranked, _Ctx([0, 1, 0, 0]), lambda m: None) == {}
+    assert selection._support_or_region(ranked, _Ctx([0, 1, 0, 0]), lambda m: None) == {}
     assert ranked[0]["name"] == "heterogeneity"

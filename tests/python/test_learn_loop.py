@@ -17,9 +17,9 @@ from matlearn.learning.initial import initial_trajectory
 from matlearn.learning.pod import pod_basis
 from matlearn.learning.spacetime import build_problem, constrained_vertices, solve_spacetime
 from matlearn.materials import Damping, Material
-from matlearn.recording import Recording, load_recording, save_recording
+from matlearn.recording import Recording, load_recording
 from matlearn.replay import simulate_recording
-from matlearn.scene import load_scene, save_scene
+from matlearn.scene import load_scene
 from matlearn.synthetic import Motion, make_case
 
 from learning_cases import scaled_fit, small_bar_case

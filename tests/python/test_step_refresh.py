@@ -11,7 +11,6 @@ isotropic (cpp/correction MlpCorrection's blend at coincident stretches).
   without converging. The same network through the isotropic blend converges every step, with a
   fraction of the factorisations."""
 import numpy as np
-import pytest
 
 from matlearn import _core, meshes
 from matlearn.materials import Damping, Material

@@ -336,7 +336,7 @@ def initial_velocity(scene, model, rec: Recording, embedding, x0: np.ndarray, fr
 # start_in_motion: the uniform stiffness scales a recording is simulated at (log grid, 10 %
 # steps: an oscillation's phase makes the residual multimodal in the stiffness, so a coarse
 # grid misses the basin) and the share of its residual above the noise that the moving start
-# must remove (as an effect must: pipeline.EXPLAINED_MIN)
+# must remove (as an effect must: selection.EXPLAINED_MIN)
 START_SCALES = tuple(float(x) for x in np.exp(np.arange(np.log(0.3), np.log(2.5) + 1e-9, np.log(1.1))))
 START_EXPLAINED = 0.5
 

@@ -78,7 +78,7 @@ def discretisation_credit(J: dict, d: np.ndarray, rows: slice, scale: float, j_o
 # The credit is measured against a once-refined *nested* mesh and scaled to the continuum like the
 # floor; the recordings' truth (a real object, or a finer mesh that is not nested in the model's)
 # errs in another spatial pattern, so the credit is uncertain by the same factor as the floor
-# (pipeline.GAP_FACTOR, ~1.6x in RMS). A gain counts as evidence only beyond that uncertainty.
+# (selection.GAP_FACTOR, ~1.6x in RMS). A gain counts as evidence only beyond that uncertainty.
 # Measured on the demo's case (homogeneously 40 % stiffer, truth on a 1.5x finer non-nested
 # mesh): a clamp-side region gains 1.1x its credit over the uniform scale; located true regions
 # in the suites gain 5-9x theirs.
