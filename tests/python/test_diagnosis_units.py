@@ -401,3 +401,23 @@ def test_the_discretisation_discrepancy_follows_the_damping(tmp_path):
     # and fitting.discrepancy is that model
     d = np.array([0.5, 0.0, 0.0, 0.0])
     np.testing.assert_allclose(fitting.discrepancy(P, P.train, d), b0 + g[0] * B[:, 0], atol=1e-12)
+
+
+def test_cli_diagnose_passes_follow_damping(tmp_path, monkeypatch):
+    """`matlearn diagnose --follow-damping` turns the option on; without it the default applies."""
+    import matlearn.diagnosis as diag
+    from diagnosis_cases import tiny_case
+
+    from matlearn.cli import main
+
+    path = tiny_case(tmp_path, "bar", cells=(3, 1, 1))
+    seen = []
+
+    def fake(scene, out, **kw):
+        seen.append(kw.get("follow_damping"))
+        return {"verdict": [], "gap_before": {"max_error_pct": 1.0}}
+
+    monkeypatch.setattr(diag, "diagnose", fake)
+    assert main(["diagnose", str(path), "--out", str(tmp_path / "a"), "--no-report", "--follow-damping"]) in (0, None)
+    assert main(["diagnose", str(path), "--out", str(tmp_path / "b"), "--no-report"]) in (0, None)
+    assert seen == [True, None]

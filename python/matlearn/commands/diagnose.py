@@ -17,6 +17,10 @@ def register(subparsers):
     p.add_argument("--residual", choices=("constrained", "spacetime"), default="constrained",
                    help="source of the control forces mapped in 'where' (spacetime: the learning "
                    "step's space-time optimisation, sharper, ~5x slower)")
+    p.add_argument("--follow-damping", action="store_true",
+                   help="experimental: the mesh's discretisation error removed from the data follows "
+                   "each candidate's Rayleigh damping (finds strong damping on coarse meshes, also "
+                   "claims damping more often where there is none; docs/diagnosis.md)")
     p.set_defaults(func=_run)
 
 
@@ -47,7 +51,7 @@ def _run(args):
     log = lambda *a: print(*a, file=sys.stderr, flush=True)  # noqa: E731
     scene = scene_with_markers(args.scene, args.out, log)
     r = diagnose(scene, args.out, seed=args.seed, report=not args.no_report,
-                 residual_source=args.residual)
+                 residual_source=args.residual, follow_damping=args.follow_damping or None)
     print(f"verdict: {', '.join(r['verdict']) or '[] (within noise and discretisation)'}")
     d, gb = r.get("discretisation") or {}, r["gap_before"]
     if d.get("gap_with_offset"):
