@@ -306,15 +306,22 @@ def test_damping_coordinates_follow_the_damping_families_and_their_clamps():
     ctx.damping = Damping(0.5, 0.004)
     np.testing.assert_allclose(damping_coordinates(ctx, {}), 0.0)
     np.testing.assert_allclose(damping_coordinates(ctx, {"stiffness_scale": [0.3]}), 0.0)
-    np.testing.assert_allclose(damping_coordinates(ctx, {"rayleigh_damping": [0.5, -0.3]}), [0.5, -0.3, 0, 0])
+    np.testing.assert_allclose(damping_coordinates(ctx, {"rayleigh_damping": [0.5, -0.3]}), [0.5, -0.3])
+    # the strain-dependent family moves alpha_M and alpha_K by its first two parameters; its
+    # alpha_K polynomial is not a coordinate
     np.testing.assert_allclose(damping_coordinates(ctx, {"strain_dependent_damping": [0.2, 0.1, 1.0, -0.5]}),
-                               [0.2, 0.1, 1.0, -0.5], atol=1e-12)
+                               [0.2, 0.1], atol=1e-12)
+    np.testing.assert_allclose(damping_coordinates(ctx, {"strain_dependent_damping": [0.0, 0.0, 1.0, -0.5]}),
+                               [0.0, 0.0], atol=1e-12)
     both = {"rayleigh_damping": [0.5, 0.0], "strain_dependent_damping": [0.2, 0.1, 1.0, 0.0]}
-    np.testing.assert_allclose(damping_coordinates(ctx, both), [0.7, 0.1, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(damping_coordinates(ctx, both), [0.7, 0.1], atol=1e-12)
     # alpha_M = 0.5 - 5 * 0.1 * 20 clamps at 0: the coordinate is the clamped move, -0.25
-    np.testing.assert_allclose(damping_coordinates(ctx, {"rayleigh_damping": [-5.0, 0.0]}), [-0.25, 0, 0, 0])
+    np.testing.assert_allclose(damping_coordinates(ctx, {"rayleigh_damping": [-5.0, 0.0]}), [-0.25, 0])
     for k, step in enumerate(DAMPING_STEPS):
-        np.testing.assert_allclose(damping_coordinates(ctx, step), np.eye(4)[k], atol=1e-12)
+        np.testing.assert_allclose(damping_coordinates(ctx, step), np.eye(2)[k], atol=1e-12)
+    # the polynomial terms still reach the model's damping (damping_of)
+    kp = damping_of(ctx, {"strain_dependent_damping": [0.0, 0.0, 1.0, -0.5]}).stiffness_poly
+    np.testing.assert_allclose(kp, [0.1 / 20.0 / 0.05, -0.5 * 0.1 / 20.0 / 0.05 ** 2])
     # damping_of is the damping build_model uses: the forces agree
     x = np.asarray(ctx.mesh.vertices).copy()
     v = _deformed(ctx.mesh, 2, 0.01) - x
@@ -336,6 +343,7 @@ def test_geometric_units_of_a_decaying_change():
     h = 1e-6
     slope = (fitting.geometric(np.array([h, h]), q) - fitting.geometric(np.array([-h, -h]), q)) / (2 * h)
     np.testing.assert_allclose(slope, [-np.log(0.5) / 0.5, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(fitting.geometric_slope(q), slope, rtol=1e-6)
     np.testing.assert_allclose(fitting.geometric(np.array([0.7]), None), [0.7])
 
 
@@ -347,13 +355,18 @@ def test_debias_removes_the_discrepancy_at_the_models_own_damping():
     rng = np.random.default_rng(5)
     recs = [SimpleNamespace(), SimpleNamespace()]
     b = [rng.standard_normal(24), rng.standard_normal(12)]
-    B = [rng.standard_normal((24, 4)), rng.standard_normal((12, 4))]
-    prob = SimpleNamespace(disc_bias={id(r): x for r, x in zip(recs, b)},
+    B = [rng.standard_normal((24, 2)), rng.standard_normal((12, 2))]
+    prob = SimpleNamespace(disc_bias={id(r): x for r, x in zip(recs, b)}, disc_bias_ratio=None,
                            disc_bias_damping={id(r): x for r, x in zip(recs, B)}, disc_weight_range=(0.55, 4 / 3))
-    d = np.array([0.8, -0.2, 0.0, 0.3])
+    d = np.array([0.8, -0.2])
     bd = np.concatenate(b) + np.concatenate(B) @ d
     np.testing.assert_allclose(fitting.discrepancy(prob, recs, d), bd)
     np.testing.assert_allclose(fitting.discrepancy(prob, recs), np.concatenate(b))
+    # with a ratio of successive unit changes: b0 + B g(d)
+    prob.disc_bias_ratio = np.array([0.5, 1.0])
+    np.testing.assert_allclose(fitting.discrepancy(prob, recs, np.array([2.0, -0.2])),
+                               np.concatenate(b) + np.concatenate(B) @ np.array([1.5, -0.2]))
+    prob.disc_bias_ratio = None
     effect = rng.standard_normal(36)
     effect -= (effect @ bd) / (bd @ bd) * bd
     np.testing.assert_allclose(fitting.debias(prob, effect - 0.9 * bd, recs, d), effect, atol=1e-12)
@@ -366,12 +379,9 @@ def test_the_discretisation_discrepancy_follows_the_damping(tmp_path):
     per unit of each damping coordinate. More mass damping damps the mesh's error with the motion
     (|b| shrinks), and the measured secant predicts the discrepancy re-measured at half a unit
     better than the nominal one does."""
-    from dataclasses import replace
-
     from diagnosis_cases import tiny_case
 
     from matlearn.diagnosis import discretisation as disc
-    from matlearn.diagnosis.effects import damping_of
 
     path = tiny_case(tmp_path, "bar", E_scale=1.0, cells=(5, 1, 1))
     P = Problem(path)
@@ -382,24 +392,18 @@ def test_the_discretisation_discrepancy_follows_the_damping(tmp_path):
     new, _, _, (b0, _), _ = disc.discretisation(P, ctx, lambda m: None, follow_damping=True)
     np.testing.assert_allclose(b0, b_off)  # the nominal discrepancy itself is unchanged
     B = np.concatenate([P.disc_bias_damping[id(r)] for r in P.train])
-    assert B.shape == (len(b0), disc.FOLLOWED)
+    assert B.shape == (len(b0), 2)
     assert np.linalg.norm(b0 + B[:, 0]) < 0.97 * np.linalg.norm(b0)  # (part of b is the static pose)
     # re-measure b at half a unit of alpha_M, as discretisation does
-    fine = Problem.__new__(Problem)
-    fine.__dict__.update(P.__dict__)
-    fine.scene, fine._emb, fine._rest_offsets, fine.disc_bias, fine._replays = P.refined_scene(), {}, {}, {}, {}
-    half = damping_of(ctx, {"rayleigh_damping": [0.5, 0.0]})
-    moved = replace(ctx, damping=half)
-    moved.clamp_layer = ctx.clamp_layer
-    saved, P.disc_bias = P.disc_bias, {}
-    rf = fitting.marker_residual(fine, fine.scene.model(damping=half), P.train)
-    b_half = rf - fitting.residual_of(P, moved, {"stiffness_scale": [new.offset_reference]}, P.train)
-    P.disc_bias = saved
+    offset = {"stiffness_scale": [new.offset_reference]}
+    fine = disc._refined_problem(P)
+    np.testing.assert_allclose(disc._measure(P, fine, ctx, offset, {}), b0, atol=1e-12)
+    b_half = disc._measure(P, fine, ctx, offset, {"rayleigh_damping": [0.5, 0.0]})
     g = fitting.geometric(np.array([0.5, 0.0]), P.disc_bias_ratio)
     assert 0.2 <= P.disc_bias_ratio[0] <= 1.0 and g[1] == 0.0
     assert np.linalg.norm(b_half - (b0 + g[0] * B[:, 0])) < 0.5 * np.linalg.norm(b_half - b0)
     # and fitting.discrepancy is that model
-    d = np.array([0.5, 0.0, 0.0, 0.0])
+    d = np.array([0.5, 0.0])
     np.testing.assert_allclose(fitting.discrepancy(P, P.train, d), b0 + g[0] * B[:, 0], atol=1e-12)
 
 

@@ -17,51 +17,71 @@ DISC_RANGE = (0.55, 4.0 / 3.0)
 # off by default (session 16: on the suites it gained one verdict and cost two, docs/results.md);
 # `diagnose(..., follow_damping=True)` turns it on
 DAMPING_FOLLOWS = False
-# the damping coordinates it follows: alpha_M and alpha_K (the strain-dependent terms keep the
-# nominal discrepancy: random seed 5's Rayleigh bar r5_09 turned strain-dependent when they followed)
-FOLLOWED = 2
 # the plausible ratios of successive unit changes of b (geometric decay with the damping; 1: linear)
 RATIO_RANGE = (0.2, 1.0)
 OFFSET_GRID = (-0.05, -0.1, -0.2, -0.35, -0.5, -0.7, -0.9, -1.2)
 
 
+def _refined_problem(P):
+    """A Problem sharing P's recordings and start decisions on the once-refined scene, with no
+    discrepancy of its own."""
+    from .problem import Problem
+
+    fine = Problem.__new__(Problem)
+    fine.__dict__.update(P.__dict__)
+    fine.scene = P.refined_scene()
+    fine._emb = {}
+    fine._rest_offsets = {}
+    fine.disc_bias = {}
+    fine.simulations = 0
+    return fine
+
+
+def _usable(b: np.ndarray) -> bool:
+    """A measured discrepancy, not a failed simulation's constant residual."""
+    return bool(np.all(np.isfinite(b))) and float(np.abs(b).max(initial=0.0)) < 0.5
+
+
+def _measure(P, fine, ctx, offset_params: dict, damping_params: dict) -> np.ndarray:
+    """The refined-minus-coarse discrepancy of P's train recordings (raw residuals, nothing
+    removed) with the damping of `damping_params` (effects.damping_of) on both meshes, the coarse
+    model at the reference offset `offset_params` (b0 when the damping is the nominal one)."""
+    from dataclasses import replace
+
+    from .effects import damping_of
+
+    damping = damping_of(ctx, damping_params)
+    rf = fitting.marker_residual(fine, fine.scene.model(damping=damping), P.train)
+    moved = replace(ctx, damping=damping)
+    moved.clamp_layer = ctx.clamp_layer
+    return rf - fitting.residual_pair(P, moved, offset_params, P.train)[1]
+
+
 def _damping_columns(P, fine, ctx, offset_params: dict, b0: np.ndarray):
-    """((N, k) the change of the refined-minus-coarse discrepancy b over the first unit of each
-    followed damping coordinate (effects.DAMPING_STEPS[:FOLLOWED]), (k,) the ratio of its change
-    over the second unit to that over the first): b re-measured with the damping moved by one
-    and two units on both meshes (a unit is ~5 % of critical damping at the dominant frequency).
+    """((N, 2) the change of the refined-minus-coarse discrepancy b over the first unit of alpha_M
+    and of alpha_K (effects.DAMPING_STEPS), (2,) the ratio of its change over the second unit to
+    that over the first): b re-measured with the damping moved by one and two units on both
+    meshes (a unit is ~5 % of critical damping at the dominant frequency).
     The mesh error of a motion decays with its damping (a coarse mesh errs most in the
     high-frequency content that damping removes), so a fixed b0 credits the nominal damping with
     the data's: independent seed 12's L-bracket (alpha_M 0.18 -> 4.5 1/s, truth nested 1:8)
     leaves 0.113 with the truth's damping and b0 against 0.112 for the nominal model, and 0.077
     (the marker noise 0.071) with the discrepancy re-measured at the truth's damping. The change
     is geometric in the damping (fitting.discrepancy: each further unit changes b by `ratio`
-    times the last), so a fit a few units away is not extrapolated linearly. None where a
-    re-measured discrepancy is unusable (a failed simulation)."""
-    from dataclasses import replace
-
-    from .effects import DAMPING_STEPS, damping_of
-
-    recs = P.train
-
-    def measured(params):
-        damping = damping_of(ctx, params)
-        rf = fitting.marker_residual(fine, fine.scene.model(damping=damping), recs)
-        moved = replace(ctx, damping=damping)
-        moved.clamp_layer = ctx.clamp_layer
-        bk = rf - fitting.residual_of(P, moved, offset_params, recs)
-        return bk if np.all(np.isfinite(bk)) and float(np.abs(bk).max(initial=0.0)) < 0.5 else None
+    times the last), so a fit a few units away is not extrapolated linearly. The strain-dependent
+    family's alpha_K polynomial is not followed (when it was, random seed 5's Rayleigh bar r5_09
+    turned strain-dependent). None where a re-measured discrepancy is unusable."""
+    from .effects import DAMPING_STEPS
 
     cols, ratios = [], []
-    for step in DAMPING_STEPS[:FOLLOWED]:
-        b1 = measured(step)
-        b2 = measured({k: [2.0 * x for x in v] for k, v in step.items()})
-        if b1 is None or b2 is None:
+    for step in DAMPING_STEPS:
+        b1 = _measure(P, fine, ctx, offset_params, step)
+        b2 = _measure(P, fine, ctx, offset_params, {k: [2.0 * x for x in v] for k, v in step.items()})
+        if not (_usable(b1) and _usable(b2)):
             return None
         d1, d2 = b1 - b0, b2 - b1
-        ratio = float(d2 @ d1) / max(float(d1 @ d1), 1e-300)
         cols.append(d1)
-        ratios.append(float(np.clip(ratio, RATIO_RANGE[0], RATIO_RANGE[1])))
+        ratios.append(float(np.clip(float(d2 @ d1) / max(float(d1 @ d1), 1e-300), *RATIO_RANGE)))
     return np.stack(cols, axis=1), np.array(ratios)
 
 
@@ -91,15 +111,7 @@ def discretisation(P, ctx, say, follow_damping: bool | None = None):
     mimicking the discrepancy the correction leaves)."""
     from dataclasses import replace
 
-    from .problem import Problem as _Problem
-
-    fine = _Problem.__new__(_Problem)
-    fine.__dict__.update(P.__dict__)
-    fine.scene = P.refined_scene()
-    fine._emb = {}
-    fine._rest_offsets = {}
-    fine.disc_bias = {}
-    fine.simulations = 0
+    fine = _refined_problem(P)
     P.disc_bias = {}
     P.disc_bias_damping = {}
     P.disc_bias_ratio = None
@@ -129,8 +141,7 @@ def discretisation(P, ctx, say, follow_damping: bool | None = None):
     theta_r = float(fit.params["stiffness_scale"][0])
     b = rf - fitting.residual_of(P, ctx, fit.params, recs)
     lo, hi = sorted((DISC_RANGE[0] * theta_r, DISC_RANGE[1] * theta_r))
-    usable = bool(np.all(np.isfinite(b))) and float(np.abs(b).max(initial=0.0)) < 0.5
-    if usable:  # (a failed simulation's constant residual is not a discrepancy)
+    if _usable(b):
         sizes = np.cumsum([3 * int(r.seen.sum()) for r in recs])[:-1]
         before = fine.simulations
         follow = DAMPING_FOLLOWS if follow_damping is None else follow_damping

@@ -199,27 +199,21 @@ def damping_of(ctx: EffectContext, params: dict) -> Damping:
     return Damping(aM, aK, list(dmp.mass_poly), kpoly)
 
 
-# unit steps of the damping coordinates (damping_coordinates): alpha_M, alpha_K and the two
-# alpha_K polynomial terms, each moved as the damping families' theta = 1 moves it
-DAMPING_STEPS = ({"rayleigh_damping": [1.0, 0.0]}, {"rayleigh_damping": [0.0, 1.0]},
-                 {"strain_dependent_damping": [0.0, 0.0, 1.0, 0.0]},
-                 {"strain_dependent_damping": [0.0, 0.0, 0.0, 1.0]})
+# unit steps of the damping coordinates (damping_coordinates): alpha_M and alpha_K, each moved as
+# the damping families' theta = 1 moves it
+DAMPING_STEPS = ({"rayleigh_damping": [1.0, 0.0]}, {"rayleigh_damping": [0.0, 1.0]})
 
 
 def damping_coordinates(ctx: EffectContext, params: dict) -> np.ndarray:
-    """(4,) how far the damping of `params` lies from the nominal one in the units of
-    DAMPING_STEPS (the clamps at 0 included): alpha_M, alpha_K, and the alpha_K polynomial's
-    linear and quadratic terms in s1 - 1."""
+    """(2,) how far the Rayleigh coefficients of `params` lie from the nominal ones in the units
+    of DAMPING_STEPS (the clamps at 0 included): alpha_M, alpha_K. (The strain-dependent
+    family's alpha_K polynomial is not a coordinate: the discrepancy does not follow it,
+    discretisation.discretisation.)"""
     if "rayleigh_damping" not in params and "strain_dependent_damping" not in params:
-        return np.zeros(4)
+        return np.zeros(2)
     d0, d = ctx.damping, damping_of(ctx, params)
-    p0 = list(d0.stiffness_poly) + [0.0] * max(0, 2 - len(d0.stiffness_poly))
-    p1 = list(d.stiffness_poly) + [0.0] * max(0, 2 - len(d.stiffness_poly))
-    unit = 0.1 / ctx.omega
     return np.array([(d.alpha_mass - d0.alpha_mass) / (0.1 * ctx.omega),
-                     (d.alpha_stiffness - d0.alpha_stiffness) / unit,
-                     (p1[0] - p0[0]) * ctx.d_ref / unit,
-                     (p1[1] - p0[1]) * ctx.d_ref ** 2 / unit])
+                     (d.alpha_stiffness - d0.alpha_stiffness) / (0.1 / ctx.omega)])
 
 
 def describe(name: str, theta, ctx: EffectContext) -> dict:

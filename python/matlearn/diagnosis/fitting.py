@@ -88,8 +88,7 @@ def discrepancy(problem, recs, damping=None):
     cols = getattr(problem, "disc_bias_damping", None)
     if damping is not None and cols and all(id(rec) in cols for rec in recs) and np.any(damping):
         B = np.concatenate([cols[id(rec)] for rec in recs])
-        d = np.asarray(damping, float)[:B.shape[1]]
-        b = b + B @ geometric(d, getattr(problem, "disc_bias_ratio", None))
+        b = b + B @ geometric(damping, problem.disc_bias_ratio)
     return b
 
 
@@ -99,10 +98,23 @@ def geometric(d: np.ndarray, ratio=None) -> np.ndarray:
     d = np.asarray(d, float)
     if ratio is None:
         return d
-    q = np.asarray(ratio, float)[:len(d)]
+    q = np.asarray(ratio, float)
     lin = np.abs(1.0 - q) < 1e-9
-    out = np.where(lin, d, (1.0 - np.power(q, d)) / np.where(lin, 1.0, 1.0 - q))
-    return out
+    return np.where(lin, d, (1.0 - np.power(q, d)) / np.where(lin, 1.0, 1.0 - q))
+
+
+def geometric_slope(ratio) -> np.ndarray:
+    """d geometric(d, ratio) / dd at d = 0: -ln ratio / (1 - ratio), 1 where ratio is 1."""
+    q = np.asarray(ratio, float)
+    lin = np.abs(1.0 - q) < 1e-9
+    return np.where(lin, 1.0, -np.log(q) / np.where(lin, 1.0, 1.0 - q))
+
+
+def debias_weight(problem, r: np.ndarray, b: np.ndarray) -> float:
+    """The weight w with which `debias` adds the discrepancy b to the residual r: r's own
+    least-squares weight, clipped to problem.disc_weight_range."""
+    lo, hi = problem.disc_weight_range
+    return float(np.clip(-float(r @ b) / float(b @ b), lo, hi))
 
 
 def debias(problem, r: np.ndarray, recs, damping=None) -> np.ndarray:
@@ -118,11 +130,9 @@ def debias(problem, r: np.ndarray, recs, damping=None) -> np.ndarray:
     b = discrepancy(problem, recs, damping)
     if b is None:
         return r
-    bb = float(b @ b)
-    if len(b) != len(r) or bb <= 0.0:
+    if len(b) != len(r) or float(b @ b) <= 0.0:
         return r
-    lo, hi = problem.disc_weight_range
-    w = float(np.clip(-float(r @ b) / bb, lo, hi))
+    w = debias_weight(problem, r, b)
     return r + w * b
 
 

@@ -470,37 +470,35 @@ def _linear_fit_nuisance(Jn, j_offset, r0, bounds):
 
 def _credit_columns(P, J_raw, r0_raw):
     """{family: columns} for the discretisation credit: the raw sensitivities, with the damping
-    families' columns plus the discrepancy's change per unit of their parameters (effects.
-    DAMPING_STEPS: Rayleigh's two move the first two damping coordinates, the strain-dependent
-    family's four all four) times the baseline's debias weight."""
-    cols = getattr(P, "disc_bias_damping", None)
-    b0 = fitting.discrepancy(P, P.train)
-    if not cols or b0 is None or any(id(rec) not in cols for rec in P.train):
+    families' alpha_M and alpha_K columns (the first two of each, effects.DAMPING_STEPS) plus the
+    discrepancy's change per unit of them (fitting.discrepancy's slope at the nominal damping)
+    times the baseline's debias weight."""
+    if not P.disc_bias_damping:
         return J_raw
-    B = np.concatenate([cols[id(rec)] for rec in P.train])
-    q = getattr(P, "disc_bias_ratio", None)
-    if q is not None:  # the slope of fitting.geometric at d = 0: -ln q / (1 - q), 1 at q = 1
-        q = np.asarray(q, float)
-        B = B * np.where(np.abs(1 - q) < 1e-9, 1.0, -np.log(q) / np.where(np.abs(1 - q) < 1e-9, 1.0, 1 - q))
-    lo, hi = P.disc_weight_range
-    w0 = float(np.clip(-float(r0_raw @ b0) / max(float(b0 @ b0), 1e-300), lo, hi))
+    b0 = fitting.discrepancy(P, P.train)
+    B = np.concatenate([P.disc_bias_damping[id(rec)] for rec in P.train])
+    B = B * fitting.geometric_slope(P.disc_bias_ratio)
+    w0 = fitting.debias_weight(P, r0_raw, b0)
     out = dict(J_raw)
-    for name, k in (("rayleigh_damping", 2), ("strain_dependent_damping", 4)):
+    for name in ("rayleigh_damping", "strain_dependent_damping"):
         if name in out:
-            k = min(k, B.shape[1])
-            out[name] = np.asarray(out[name], float)
-            out[name][:, :k] = out[name][:, :k] + w0 * B[:, :k]
+            cols = np.array(out[name], float)
+            cols[:, :2] += w0 * B
+            out[name] = cols
     return out
 
 
 def _own_floor(P, ctx, fit, rss_floor, rss_noise_hi, d_scale):
     """The floor of a fitted model: the noise bound plus what the weight's uncertainty leaves of
-    the discrepancy at the fit's damping (discretisation.discretisation's floor, re-measured)."""
+    the discrepancy at the fit's damping (discretisation.discretisation's floor, re-measured);
+    `rss_floor` itself where the discrepancy does not follow the damping."""
     from .effects import damping_coordinates
 
     d = damping_coordinates(ctx, fit.params)
-    b = fitting.discrepancy(P, P.train, d) if np.any(d) else None
-    return rss_floor if b is None else float(rss_noise_hi + d_scale * float(b @ b))
+    if not P.disc_bias_damping or not np.any(d):
+        return rss_floor
+    b = fitting.discrepancy(P, P.train, d)
+    return float(rss_noise_hi + d_scale * float(b @ b))
 
 
 def _cap_shares(regions):

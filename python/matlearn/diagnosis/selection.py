@@ -1,7 +1,8 @@
 """The decision rules of the diagnosis (pipeline.diagnose): which families are simulated beyond
 the linear shortlist, the evidence order of the simulated fits, nested families and the support /
 region pair, forward selection of further effects. Each takes the fits and floors diagnose
-computed; none simulates except `_forward_select` (it refits candidate pairs)."""
+computed; they simulate only through `_forward_select`'s refits and the leave-one-recording-out
+callback `_resolve_nested` is given."""
 from __future__ import annotations
 
 import numpy as np
