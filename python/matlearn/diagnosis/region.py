@@ -39,10 +39,11 @@ def _debiased_jacobian(problem, r, J):
     """J of the raw residual -> J of the debiased one (fitting.debias): while the discrepancy's
     weight is inside its range the debiased residual is orthogonal to the discrepancy b (its
     direction is profiled out), and so is its derivative; at a clipped weight J is unchanged."""
-    bias = getattr(problem, "disc_bias", None)
-    if not bias or any(id(rec) not in bias for rec in problem.train):
+    from .fitting import discrepancy
+
+    b = discrepancy(problem, problem.train)  # (a stiffness patch does not move the damping)
+    if b is None:
         return J
-    b = np.concatenate([bias[id(rec)] for rec in problem.train])
     bb = float(b @ b)
     if len(b) != len(r) or bb <= 0 or abs(float(r @ b)) > 1e-6 * np.sqrt(bb * float(r @ r) + 1e-300):
         return J
