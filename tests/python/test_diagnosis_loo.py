@@ -52,3 +52,33 @@ def test_an_effect_fitted_to_one_recordings_noise_still_does_not_carry_over(monk
     loo, insample = fitting.loo_rss(P, None, {"fam": np.array([0.0])})
     assert np.isclose(insample, 2 * n * 0.01)
     assert loo > 3.0 * insample, (loo, insample)
+
+
+def test_a_recording_without_information_is_inconclusive_not_evidence_against(monkeypatch):
+    # A carries the effect (theta 0.1, strong sensitivity); B barely depends on theta and its
+    # noise (plus a small offset) would prefer theta -0.1, a preference below what its noise
+    # explains. Refit on B alone, the fold jumped there and predicted A badly (the effect seemed
+    # not to carry over); with the noise known, the fold keeps the all-data fit
+    rng = np.random.default_rng(1)
+    n, sigma = 200, 0.01
+    eA, eB = sigma * rng.standard_normal(n), sigma * rng.standard_normal(n)
+    eB -= eB.mean()
+    res = {"A": lambda th: (th[0] - 0.1) + eA, "B": lambda th: 0.02 * th[0] + 0.002 + eB}
+    P = _problem(monkeypatch, res)
+    params = {"fam": np.array([0.1])}
+    plain, insample = fitting.loo_rss(P, None, params)
+    gated, insample_g = fitting.loo_rss(P, None, params, noise_var=sigma**2)
+    assert insample_g == insample
+    assert plain > 3.0 * insample, (plain, insample)
+    assert gated < 1.1 * insample, (gated, insample)
+
+
+def test_the_noise_gate_keeps_a_real_disagreement(monkeypatch):
+    # two informative recordings that want opposite parameters (far beyond their noise): the
+    # gate changes nothing, the effect still does not carry over
+    n = 200
+    J = np.ones(n)
+    res = {"A": lambda th: J * (th[0] - 0.1), "B": lambda th: J * (th[0] + 0.1)}
+    P = _problem(monkeypatch, res)
+    loo, insample = fitting.loo_rss(P, None, {"fam": np.array([0.0])}, noise_var=1e-4)
+    assert loo > 3.0 * insample, (loo, insample)
