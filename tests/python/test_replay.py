@@ -116,3 +116,48 @@ def test_drive_points_are_followed(setup):
     np.testing.assert_array_equal(idx, np.sort(tip))
     err = replay.trajectory_error(replay.predict_markers(scene, model, rec), rec, scene.object_size)
     assert err["max_error_pct"] < 1e-6
+
+
+class _Flaky:
+    """An integrator whose static_solve raises (as a Newton failure does) at the given calls."""
+
+    def __init__(self, integ, fail_at):
+        self._integ, self._fail_at, self.calls = integ, set(fail_at), 0
+
+    def static_solve(self, *args, **kwargs):
+        self.calls += 1
+        if self.calls in self._fail_at:
+            raise RuntimeError("static_solve: Newton did not converge at load step 1 (test)")
+        return self._integ.static_solve(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._integ, name)
+
+
+def test_held_pose_survives_failing_newton_solves(setup):
+    from matlearn.embedding import embed_points
+
+    scene, model, X, V, t = setup
+    rng = np.random.default_rng(3)
+    faces = scene.mesh.surface_faces[rng.choice(len(scene.mesh.surface_faces), 12, replace=False)]
+    w = rng.dirichlet(np.ones(3), size=len(faces))
+    rest = np.einsum("kj,kjd->kd", w, scene.mesh.vertices[faces])
+    rec = Recording(t, rest, np.einsum("kj,tkjd->tkd", w, X[:, faces]))
+    emb = embed_points(scene.mesh, rest)
+    good = replay._held_pose(scene, model, rec, 0, emb, refine=3)
+    one_pass = replay._held_pose(scene, model, rec, 0, emb, refine=1)
+    # an increment fails: the increments are made finer and the pose is the same equilibrium
+    flaky = _Flaky(scene.integrator(model), {1})
+    x = replay._held_pose(scene, model, rec, 0, emb, integ=flaky, refine=3)
+    np.testing.assert_allclose(x, good, atol=1e-6 * scene.object_size)
+    assert flaky.calls > 4
+    # a refinement pass fails (the increments took one solve here): the pose of the passes before
+    incs = _Flaky(scene.integrator(model), set())
+    replay._held_pose(scene, model, rec, 0, emb, integ=incs, refine=0)
+    flaky = _Flaky(scene.integrator(model), {incs.calls + 2})
+    x = replay._held_pose(scene, model, rec, 0, emb, integ=flaky, refine=3)
+    np.testing.assert_allclose(x, one_pass, atol=1e-12)
+    assert np.abs(one_pass - good).max() > 1e-6 * scene.object_size  # the passes matter
+    # every retry fails: the failure is raised, not hidden
+    with pytest.raises(RuntimeError, match="Newton"):
+        replay._held_pose(scene, model, rec, 0, emb, integ=_Flaky(scene.integrator(model), range(1, 1000)))
