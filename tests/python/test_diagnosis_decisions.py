@@ -230,3 +230,59 @@ def test_a_significant_remainder_gets_every_credited_family_simulated():
     fits["heterogeneity"] = SimpleNamespace(rss=0.04)
     assert _still_unexplained(fits, cheap, rss0, order, 0.045) == []
     assert _still_unexplained({}, cheap, rss0, order, 0.045) == []
+
+
+def _pair_setup(monkeypatch, pair_rss):
+    """Ranked rows of single fits (named combined capsule's numbers, rounded) and a refit whose
+    residual is pair_rss[frozenset(families)]; returns (ranked, calls)."""
+    from types import SimpleNamespace
+
+    from matlearn.diagnosis import selection
+
+    calls = []
+
+    def refine(P, ctx, names, start, iterations=2, progress=None):
+        fams = frozenset(n for n in names if n != "discretisation_offset")
+        calls.append(fams)
+        return SimpleNamespace(rss=pair_rss[fams], params=dict(start))
+
+    monkeypatch.setattr(selection.fitting, "refine", refine)
+    single = {"tension_nonlinearity": 0.257, "compression_nonlinearity": 0.602, "stiffness_scale": 0.675,
+              "rayleigh_damping": 1.888}
+    ranked = [{"name": n, "rss": r, "_fit": SimpleNamespace(rss=r, params={n: [0.1]})} for n, r in single.items()]
+    return ranked, calls
+
+
+def test_a_single_family_mimicking_an_elastic_and_dissipative_pair_is_replaced_by_the_pair(monkeypatch):
+    from matlearn.diagnosis.selection import _pair_challenge
+
+    pair_rss = {frozenset({"compression_nonlinearity", "rayleigh_damping"}): 0.097,
+                frozenset({"stiffness_scale", "rayleigh_damping"}): 0.035}
+    ranked, calls = _pair_setup(monkeypatch, pair_rss)
+    lead = ranked[0]
+    verdict, fit = _pair_challenge(None, None, ranked, ["tension_nonlinearity"], lead["_fit"], 1000.0, 0.01,
+                                   {}, {}, lambda m: None)
+    assert verdict == ["stiffness_scale", "rayleigh_damping"]  # the ranking order of its members
+    assert fit.rss == 0.035
+    # a pair containing the lead is forward selection's decision: never refitted here
+    assert all("tension_nonlinearity" not in c for c in calls)
+
+
+def test_a_pair_whose_second_member_adds_nothing_beyond_its_credit_keeps_the_lead(monkeypatch):
+    from matlearn.diagnosis.selection import _pair_challenge
+
+    # the pair beats the lead, but the damping adds only 0.05 to the stiffness scale's own fit,
+    # less than 2.5 x its discretisation credit (0.03): no second effect
+    pair_rss = {frozenset({"compression_nonlinearity", "rayleigh_damping"}): 0.65,
+                frozenset({"stiffness_scale", "rayleigh_damping"}): 0.625}
+    ranked, _ = _pair_setup(monkeypatch, pair_rss)
+    for r in ranked:
+        r["rss"] = r["_fit"].rss = {"tension_nonlinearity": 0.70}.get(r["name"], r["rss"])
+    credit = {"rayleigh_damping": 0.03}
+    verdict, fit = _pair_challenge(None, None, ranked, ["tension_nonlinearity"], ranked[0]["_fit"], 1000.0,
+                                   0.01, credit, {}, lambda m: None)
+    assert verdict == ["tension_nonlinearity"] and fit is ranked[0]["_fit"]
+    # without that credit the same pair is taken
+    verdict, _ = _pair_challenge(None, None, ranked, ["tension_nonlinearity"], ranked[0]["_fit"], 1000.0,
+                                 0.01, {}, {}, lambda m: None)
+    assert verdict == ["stiffness_scale", "rayleigh_damping"]

@@ -29,7 +29,7 @@ from .discretisation import discretisation
 from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContext, describe
 from .problem import Problem
 from .selection import (ADD_FACTOR, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE, _add_nested_ties,
-                        _dof, _explained_excess, _forward_select, _linearisation_refuted, _rank,
+                        _dof, _explained_excess, _forward_select, _linearisation_refuted, _pair_challenge, _rank,
                         _resolve_nested, _shortfall_replacements, _still_unexplained,
                         _support_or_region)
 
@@ -356,6 +356,8 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                 f"claimed {ok}")
         if ok:
             verdict, selected = [best["name"]], fit
+            verdict, selected = _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, rss_floor, credit,
+                                                tol, say)
             selected = _forward_select(P, ctx, selected, ranked, verdict, n_eff, rss_wide, rss0, say)
             # final refit of the verdict's parameters together (what the held-out gap uses)
             polished = fitting.refine(P, ctx, list(selected.params), selected.params, iterations=4,
@@ -381,6 +383,10 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     cumulative = {}
     for name, params in _cumulative_params(verdict, selected.params if selected else {}).items():
         cumulative[name] = _safe_gap(P, ctx, params)
+    # the effects list is ranked best first (formats.md): the verdict's effects lead, in its order
+    # (a pair chosen jointly, _pair_challenge, can rank below a single family it replaced)
+    front = [r for v in verdict for r in ranked if r["name"] == v]
+    ranked[:] = front + [r for r in ranked if all(r is not f for f in front)]
     effects = []
     for e in ranked:
         name = e["name"]

@@ -294,3 +294,61 @@ def _forward_select(P, ctx, selected, ranked, verdict, n_eff, floor, rss0, say, 
         verdict.append(added)
         selected = best
     return selected
+
+
+# Families of the two kinds a combined truth mixes: one acts on the elastic stress, the other on
+# the dissipation. A single family of one kind can mimic such a pair (a strong softening in
+# tension took a stiffness change plus some of a damping change: the named combined capsule),
+# and forward selection, which only adds to the lead, never meets the pair.
+ELASTIC = ("stiffness_scale", "tension_nonlinearity", "compression_nonlinearity", "poisson_ratio")
+DISSIPATIVE = ("rayleigh_damping", "strain_dependent_damping")
+
+
+def _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, floor, credit, tol, say):
+    """(verdict, selected): a single-effect verdict replaced by an elastic + dissipative pair
+    that does not contain it (adding to the lead is _forward_select's decision) when the pair, fitted jointly from its members' single optima, beats the lead by more than
+    the noise, by the information criterion with every fit charged CREDIT_FACTOR x its
+    discretisation credit (the pair the sum of its members'), and when each member is needed:
+    the pair beats each member's own single fit by more than the other member's credit and the
+    noise (a family that adds nothing to the other is no second effect). The pairs: every
+    simulated elastic fit with every simulated dissipative one; the member whose single fit
+    leads the ranking comes first."""
+    if len(verdict) != 1 or selected is None:
+        return verdict, selected
+    rows = {r["name"]: r for r in ranked if r["_fit"] is not None}
+    lead = rows.get(verdict[0])
+    if lead is None:
+        return verdict, selected
+    by_rss = lambda names: sorted((rows[n] for n in names if n in rows), key=lambda r: r["rss"])  # noqa: E731
+    elastic, dissipative = by_rss(ELASTIC), by_rss(DISSIPATIVE)
+    order = [r["name"] for r in ranked]
+    k = lambda name: _dof(name)  # noqa: E731
+    charged = lambda rss, names: rss + ranking.CREDIT_FACTOR * sum(credit.get(n, 0.0) for n in names)  # noqa: E731
+    lead_score = fitting.score(charged(lead["rss"], [lead["name"]]), _dof(lead["name"]), n_eff, floor)
+    best = None
+    for e in elastic:
+        for d in dissipative:
+            names = [e["name"], d["name"]]
+            if lead["name"] in names:  # adding to the lead is forward selection's decision
+                continue
+            # from each member's own optimum with the other at its nominal value (each single
+            # optimum also absorbed what it could of the other's effect: their sum overshoots)
+            fit = None
+            for one, other in ((e, d), (d, e)):
+                start = {**{n: np.zeros_like(np.asarray(v, float)) for n, v in other["_fit"].params.items()},
+                         **one["_fit"].params}
+                got = fitting.refine(P, ctx, list(start), start, iterations=2, progress=say)
+                fit = got if fit is None or got.rss < fit.rss else fit
+            dof = k(e["name"]) + k(d["name"])
+            score = fitting.score(charged(fit.rss, names), dof, n_eff, floor)
+            need = all(fit.rss < m["rss"] - ranking.CREDIT_FACTOR * credit.get(o, 0.0) - tol.get(o, 0.0)
+                       for m, o in ((e, d["name"]), (d, e["name"])))
+            beats = fit.rss < lead["rss"] - tol.get(lead["name"], 0.0) and score < lead_score
+            say(f"pair {e['name']} + {d['name']}: rss {fit.rss:.3e} (score {score:.1f}) vs lead "
+                f"{lead['name']} {lead['rss']:.3e} (score {lead_score:.1f}); each member needed {need}, "
+                f"beats the lead {beats}")
+            if need and beats and (best is None or score < best[0]):
+                best = (score, sorted(names, key=order.index), fit)
+    if best is None:
+        return verdict, selected
+    return best[1], best[2]
