@@ -300,7 +300,8 @@ def _forward_select(P, ctx, selected, ranked, verdict, n_eff, floor, rss0, say, 
 # the dissipation. A single family of one kind can mimic such a pair (a strong softening in
 # tension took a stiffness change plus some of a damping change: the named combined capsule),
 # and forward selection, which only adds to the lead, never meets the pair.
-ELASTIC = ("stiffness_scale", "tension_nonlinearity", "compression_nonlinearity", "poisson_ratio")
+ELASTIC = ("stiffness_scale", "tension_nonlinearity", "compression_nonlinearity", "poisson_ratio",
+           "support_compliance", "heterogeneity")
 DISSIPATIVE = ("rayleigh_damping", "strain_dependent_damping")
 
 
