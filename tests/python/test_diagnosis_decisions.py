@@ -286,3 +286,35 @@ def test_a_pair_whose_second_member_adds_nothing_beyond_its_credit_keeps_the_lea
     verdict, _ = _pair_challenge(None, None, ranked, ["tension_nonlinearity"], ranked[0]["_fit"], 1000.0,
                                  0.01, {}, {}, lambda m: None)
     assert verdict == ["stiffness_scale", "rayleigh_damping"]
+
+
+def test_dissipative_families_never_simulated_alone_still_join_the_pairs(monkeypatch):
+    from types import SimpleNamespace
+
+    from matlearn.diagnosis.selection import _pair_challenge
+
+    # random seed 8's density + Rayleigh capsule: no damping family was simulated alone (their
+    # linear predictions gained little) and a Poisson ratio led; the stiffness scale + damping,
+    # from the scale's optimum with the damping nominal, explains far more
+    pair_rss = {frozenset({"stiffness_scale", "rayleigh_damping"}): 0.0069,
+                frozenset({"stiffness_scale", "strain_dependent_damping"}): 0.0071}
+    ranked, calls = _pair_setup(monkeypatch, pair_rss)
+    ranked = [{"name": "poisson_ratio", "rss": 0.023, "_fit": SimpleNamespace(rss=0.023, params={"poisson_ratio": [0.1]})},
+              {"name": "stiffness_scale", "rss": 0.029, "_fit": SimpleNamespace(rss=0.029, params={"stiffness_scale": [0.2]})},
+              {"name": "rayleigh_damping", "rss": 0.259, "_fit": None},
+              {"name": "strain_dependent_damping", "rss": 0.258, "_fit": None}]
+    starts = []
+    from matlearn.diagnosis import selection
+
+    refine = selection.fitting.refine
+    monkeypatch.setattr(selection.fitting, "refine",
+                        lambda P, ctx, names, start, **kw: starts.append(dict(start)) or refine(P, ctx, names, start, **kw))
+    verdict, fit = _pair_challenge(None, None, ranked, ["poisson_ratio"], ranked[0]["_fit"], 1000.0, 0.005,
+                                   {}, {}, lambda m: None)
+    assert verdict == ["stiffness_scale", "rayleigh_damping"] and fit.rss == 0.0069
+    # one start per pair, from the scale's optimum with the damping at its nominal value (zero)
+    assert len(starts) == 2
+    for s in starts:
+        assert s["stiffness_scale"] == [0.2]
+        damping = [n for n in s if n != "stiffness_scale"][0]
+        assert not np.any(s[damping])
