@@ -73,14 +73,18 @@ def test_replaying_the_truth_on_the_same_mesh_has_no_error(setup):
         "max_error_pct"] > 0.5
 
 
-def test_sparse_off_vertex_markers_give_a_close_initial_state(setup):
-    scene, model, X, V, t = setup
-    rng = np.random.default_rng(3)
+def _sparse_recording(scene, X, t, seed=3):
+    """12 markers at random points of random surface triangles, following the trajectory X."""
+    rng = np.random.default_rng(seed)
     faces = scene.mesh.surface_faces[rng.choice(len(scene.mesh.surface_faces), 12, replace=False)]
     w = rng.dirichlet(np.ones(3), size=len(faces))
     rest = np.einsum("kj,kjd->kd", w, scene.mesh.vertices[faces])
-    markers = np.einsum("kj,tkjd->tkd", w, X[:, faces])
-    rec = Recording(t, rest, markers)
+    return Recording(t, rest, np.einsum("kj,tkjd->tkd", w, X[:, faces]))
+
+
+def test_sparse_off_vertex_markers_give_a_close_initial_state(setup):
+    scene, model, X, V, t = setup
+    rec = _sparse_recording(scene, X, t)
     tip_disp = np.abs(X[0] - scene.mesh.vertices).max()
     x0, _ = replay.initial_state(scene, model, rec)
     assert np.abs(x0 - X[0]).max() < 0.06 * tip_disp
@@ -138,12 +142,8 @@ def test_held_pose_survives_failing_newton_solves(setup):
     from matlearn.embedding import embed_points
 
     scene, model, X, V, t = setup
-    rng = np.random.default_rng(3)
-    faces = scene.mesh.surface_faces[rng.choice(len(scene.mesh.surface_faces), 12, replace=False)]
-    w = rng.dirichlet(np.ones(3), size=len(faces))
-    rest = np.einsum("kj,kjd->kd", w, scene.mesh.vertices[faces])
-    rec = Recording(t, rest, np.einsum("kj,tkjd->tkd", w, X[:, faces]))
-    emb = embed_points(scene.mesh, rest)
+    rec = _sparse_recording(scene, X, t)
+    emb = embed_points(scene.mesh, rec.marker_rest)
     good = replay._held_pose(scene, model, rec, 0, emb, refine=3)
     one_pass = replay._held_pose(scene, model, rec, 0, emb, refine=1)
     # an increment fails: the increments are made finer and the pose is the same equilibrium
