@@ -318,3 +318,21 @@ def test_dissipative_families_never_simulated_alone_still_join_the_pairs(monkeyp
         assert s["stiffness_scale"] == [0.2]
         damping = [n for n in s if n != "stiffness_scale"][0]
         assert not np.any(s[damping])
+
+
+def test_a_pair_with_a_family_nested_with_the_lead_is_not_a_challenger(monkeypatch):
+    from matlearn.diagnosis.selection import _pair_challenge
+
+    # strain-dependent damping contains Rayleigh damping: a pair with it adds to a Rayleigh lead
+    # (forward selection's decision), it does not replace it
+    pair_rss = {frozenset({"stiffness_scale", "strain_dependent_damping"}): 0.01}
+    ranked, calls = _pair_setup(monkeypatch, pair_rss)
+    from types import SimpleNamespace
+
+    ranked = [{"name": "rayleigh_damping", "rss": 0.2, "_fit": SimpleNamespace(rss=0.2, params={"rayleigh_damping": [0.1, 0.0]})},
+              {"name": "stiffness_scale", "rss": 0.6, "_fit": SimpleNamespace(rss=0.6, params={"stiffness_scale": [0.1]})},
+              {"name": "strain_dependent_damping", "rss": 0.19,
+               "_fit": SimpleNamespace(rss=0.19, params={"strain_dependent_damping": [0.1, 0.0, 0.0, 0.0]})}]
+    verdict, _ = _pair_challenge(None, None, ranked, ["rayleigh_damping"], ranked[0]["_fit"], 1000.0, 0.01,
+                                 {}, {}, lambda m: None)
+    assert verdict == ["rayleigh_damping"] and not calls
