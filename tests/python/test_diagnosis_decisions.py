@@ -320,7 +320,7 @@ def test_dissipative_families_never_simulated_alone_still_join_the_pairs(monkeyp
         assert not np.any(s[damping])
 
 
-def test_a_pair_with_a_family_nested_with_the_lead_is_not_a_challenger(monkeypatch):
+def test_a_pair_with_a_family_containing_the_lead_is_not_a_challenger(monkeypatch):
     from matlearn.diagnosis.selection import _pair_challenge
 
     # strain-dependent damping contains Rayleigh damping: a pair with it adds to a Rayleigh lead
@@ -336,3 +336,10 @@ def test_a_pair_with_a_family_nested_with_the_lead_is_not_a_challenger(monkeypat
     verdict, _ = _pair_challenge(None, None, ranked, ["rayleigh_damping"], ranked[0]["_fit"], 1000.0, 0.01,
                                  {}, {}, lambda m: None)
     assert verdict == ["rayleigh_damping"] and not calls
+    # a family nested *in* the lead makes a different explanation: with strain-dependent damping
+    # leading, the scale + Rayleigh pair challenges it
+    pair_rss[frozenset({"stiffness_scale", "rayleigh_damping"})] = 0.01
+    ranked = [ranked[2], ranked[1], ranked[0]]
+    verdict, _ = _pair_challenge(None, None, ranked, ["strain_dependent_damping"], ranked[0]["_fit"], 1000.0,
+                                 0.01, {}, {}, lambda m: None)
+    assert verdict == ["stiffness_scale", "rayleigh_damping"]

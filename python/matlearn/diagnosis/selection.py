@@ -336,13 +336,13 @@ def _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, floor, credit, tol
     for e in elastic:
         for d in dissipative:
             names = [e["name"], d["name"]]
-            # adding to the lead is forward selection's decision, and a family nested with the
-            # lead (strain-dependent damping over Rayleigh, a region over the scale) contains it:
-            # such a pair adds to the lead too (random seed 5's Rayleigh bar r5_09 became
-            # strain-dependent damping + clamp layer)
-            related = {lead["name"]} | {big for big, (small, _) in NESTS.items() if small == lead["name"]}
-            related |= {NESTS[lead["name"]][0]} if lead["name"] in NESTS else set()
-            if related & set(names):
+            # adding to the lead is forward selection's decision, and a family that contains the
+            # lead (strain-dependent damping over Rayleigh, a region over the scale) adds to it too
+            # (random seed 5's Rayleigh bar r5_09 became strain-dependent damping + clamp layer);
+            # a family nested *in* the lead makes a different explanation and stays (random seed
+            # 8's tension + Rayleigh and Rayleigh + support, led by strain-dependent damping)
+            contains = {lead["name"]} | {big for big, (small, _) in NESTS.items() if small == lead["name"]}
+            if contains & set(names):
                 continue
             # from each member's own optimum with the other at its nominal value (each single
             # optimum also absorbed what it could of the other's effect: their sum overshoots)
