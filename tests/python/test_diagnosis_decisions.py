@@ -1,12 +1,15 @@
 """Decision rules of the diagnosis: evidence ranking with discretisation credit (ranking.py) and
 the history-dependence test (history.py) with its stateless control."""
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
-from matlearn.diagnosis import history, ranking
+from matlearn.diagnosis import history, ranking, selection
 from matlearn.diagnosis.effects import EffectContext
 from matlearn.diagnosis.fitting import locate_region
 from matlearn.diagnosis.problem import Problem
+from matlearn.diagnosis.selection import _pair_challenge
 from matlearn.recording import load_recording
 
 from diagnosis_cases import tiny_case
@@ -235,10 +238,6 @@ def test_a_significant_remainder_gets_every_credited_family_simulated():
 def _pair_setup(monkeypatch, pair_rss):
     """Ranked rows of single fits (named combined capsule's numbers, rounded) and a refit whose
     residual is pair_rss[frozenset(families)]; returns (ranked, calls)."""
-    from types import SimpleNamespace
-
-    from matlearn.diagnosis import selection
-
     calls = []
 
     def refine(P, ctx, names, start, iterations=2, progress=None):
@@ -254,8 +253,6 @@ def _pair_setup(monkeypatch, pair_rss):
 
 
 def test_a_single_family_mimicking_an_elastic_and_dissipative_pair_is_replaced_by_the_pair(monkeypatch):
-    from matlearn.diagnosis.selection import _pair_challenge
-
     pair_rss = {frozenset({"compression_nonlinearity", "rayleigh_damping"}): 0.097,
                 frozenset({"stiffness_scale", "rayleigh_damping"}): 0.035}
     ranked, calls = _pair_setup(monkeypatch, pair_rss)
@@ -269,8 +266,6 @@ def test_a_single_family_mimicking_an_elastic_and_dissipative_pair_is_replaced_b
 
 
 def test_a_pair_whose_second_member_adds_nothing_beyond_its_credit_keeps_the_lead(monkeypatch):
-    from matlearn.diagnosis.selection import _pair_challenge
-
     # the pair beats the lead, but the damping adds only 0.05 to the stiffness scale's own fit,
     # less than 2.5 x its discretisation credit (0.03): no second effect
     pair_rss = {frozenset({"compression_nonlinearity", "rayleigh_damping"}): 0.65,
@@ -289,10 +284,6 @@ def test_a_pair_whose_second_member_adds_nothing_beyond_its_credit_keeps_the_lea
 
 
 def test_dissipative_families_never_simulated_alone_still_join_the_pairs(monkeypatch):
-    from types import SimpleNamespace
-
-    from matlearn.diagnosis.selection import _pair_challenge
-
     # random seed 8's density + Rayleigh capsule: no damping family was simulated alone (their
     # linear predictions gained little) and a Poisson ratio led; the stiffness scale + damping,
     # from the scale's optimum with the damping nominal, explains far more
@@ -304,8 +295,6 @@ def test_dissipative_families_never_simulated_alone_still_join_the_pairs(monkeyp
               {"name": "rayleigh_damping", "rss": 0.259, "_fit": None},
               {"name": "strain_dependent_damping", "rss": 0.258, "_fit": None}]
     starts = []
-    from matlearn.diagnosis import selection
-
     refine = selection.fitting.refine
     monkeypatch.setattr(selection.fitting, "refine",
                         lambda P, ctx, names, start, **kw: starts.append(dict(start)) or refine(P, ctx, names, start, **kw))
@@ -321,14 +310,10 @@ def test_dissipative_families_never_simulated_alone_still_join_the_pairs(monkeyp
 
 
 def test_a_pair_with_a_family_containing_the_lead_is_not_a_challenger(monkeypatch):
-    from matlearn.diagnosis.selection import _pair_challenge
-
     # strain-dependent damping contains Rayleigh damping: a pair with it adds to a Rayleigh lead
     # (forward selection's decision), it does not replace it
     pair_rss = {frozenset({"stiffness_scale", "strain_dependent_damping"}): 0.01}
     ranked, calls = _pair_setup(monkeypatch, pair_rss)
-    from types import SimpleNamespace
-
     ranked = [{"name": "rayleigh_damping", "rss": 0.2, "_fit": SimpleNamespace(rss=0.2, params={"rayleigh_damping": [0.1, 0.0]})},
               {"name": "stiffness_scale", "rss": 0.6, "_fit": SimpleNamespace(rss=0.6, params={"stiffness_scale": [0.1]})},
               {"name": "strain_dependent_damping", "rss": 0.19,

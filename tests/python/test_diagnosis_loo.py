@@ -74,4 +74,3 @@ def test_a_recording_without_information_is_inconclusive_not_evidence_against(mo
     assert insample_g == insample
     assert plain > 3.0 * insample, (plain, insample)
     assert gated < 1.1 * insample, (gated, insample)
-

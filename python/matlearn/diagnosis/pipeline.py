@@ -29,9 +29,9 @@ from .discretisation import discretisation
 from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContext, describe
 from .problem import Problem
 from .selection import (ADD_FACTOR, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE, _add_nested_ties,
-                        _dof, _explained_excess, _forward_select, _linearisation_refuted, _pair_challenge, _rank,
-                        _resolve_nested, _shortfall_replacements, _still_unexplained,
-                        _support_or_region)
+                        _dof, _explained_excess, _forward_select, _linearisation_refuted,
+                        _pair_challenge, _rank, _resolve_nested, _shortfall_replacements,
+                        _still_unexplained, _support_or_region)
 
 # per-recording start decision (problem.start_in_motion); False: every recording starts at rest
 START_DECISION = True
@@ -318,8 +318,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         recordings prefer it beyond their noise (fitting.loo_rss noise_var), so an uninformative
         recording is inconclusive, not evidence against (the nested comparisons keep the plain
         refit, which weighs two families on equal terms)."""
-        key = name + ("/relocated" if relocate and name == "heterogeneity" else "")
-        key += "/claim" if claim and key != "heterogeneity/relocated" else ""
+        key = name + ("/relocated" if relocate and name == "heterogeneity" else "/claim" if claim else "")
         if key not in cv:
             if key == "heterogeneity/relocated":
                 cv[key] = fitting.loo_rss_region(P, ctx, fit.params, Jp, r0, labels)

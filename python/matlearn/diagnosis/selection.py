@@ -308,12 +308,14 @@ DISSIPATIVE = ("rayleigh_damping", "strain_dependent_damping")
 def _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, floor, credit, tol, say):
     """(verdict, selected): a single-effect verdict replaced by an elastic + dissipative pair
     that does not contain it (adding to the lead is _forward_select's decision) when the pair,
-    fitted jointly from its members' single optima, beats the lead by more than the noise, by the information criterion with every fit charged CREDIT_FACTOR x its
-    discretisation credit (the pair the sum of its members'), and when each member is needed:
-    the pair beats each member's own single fit by more than the other member's credit and the
-    noise (a family that adds nothing to the other is no second effect). The pairs: every
-    simulated elastic fit with every simulated dissipative one (with both dissipative families,
-    from the elastic optimum, where none was simulated); the member whose single fit leads the ranking comes first."""
+    fitted jointly from its members' single optima, beats the lead by more than the noise, by
+    the information criterion with every fit charged CREDIT_FACTOR x its discretisation credit
+    (the pair the sum of its members'), and when each member is needed: the pair beats each
+    member's own single fit by more than the other member's credit and the noise (a family
+    that adds nothing to the other is no second effect). The pairs: every simulated elastic fit
+    with every simulated dissipative one (with both dissipative families, from the elastic
+    optimum, where none was simulated); the member whose single fit leads the ranking comes
+    first."""
     if len(verdict) != 1 or selected is None:
         return verdict, selected
     rows = {r["name"]: r for r in ranked if r["_fit"] is not None}
@@ -329,19 +331,18 @@ def _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, floor, credit, tol
         # ratio: the stiffness scale + damping leaves 7.1e-3 against the ratio's 2.3e-2)
         dissipative = [r for r in ranked if r["name"] in DISSIPATIVE]
     order = [r["name"] for r in ranked]
-    k = lambda name: _dof(name)  # noqa: E731
+    # adding to the lead is forward selection's decision, and a family that contains the lead
+    # (strain-dependent damping over Rayleigh, a region over the scale) adds to it too (random
+    # seed 5's Rayleigh bar r5_09 became strain-dependent damping + clamp layer); a family
+    # nested *in* the lead makes a different explanation and stays (random seed 8's tension +
+    # Rayleigh and Rayleigh + support, led by strain-dependent damping)
+    contains = {lead["name"]} | {big for big, (small, _) in NESTS.items() if small == lead["name"]}
     charged = lambda rss, names: rss + ranking.CREDIT_FACTOR * sum(credit.get(n, 0.0) for n in names)  # noqa: E731
     lead_score = fitting.score(charged(lead["rss"], [lead["name"]]), _dof(lead["name"]), n_eff, floor)
     best = None
     for e in elastic:
         for d in dissipative:
             names = [e["name"], d["name"]]
-            # adding to the lead is forward selection's decision, and a family that contains the
-            # lead (strain-dependent damping over Rayleigh, a region over the scale) adds to it too
-            # (random seed 5's Rayleigh bar r5_09 became strain-dependent damping + clamp layer);
-            # a family nested *in* the lead makes a different explanation and stays (random seed
-            # 8's tension + Rayleigh and Rayleigh + support, led by strain-dependent damping)
-            contains = {lead["name"]} | {big for big, (small, _) in NESTS.items() if small == lead["name"]}
             if contains & set(names):
                 continue
             # from each member's own optimum with the other at its nominal value (each single
@@ -356,7 +357,7 @@ def _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, floor, credit, tol
                          **one["_fit"].params}
                 got = fitting.refine(P, ctx, list(start), start, iterations=2, progress=say)
                 fit = got if fit is None or got.rss < fit.rss else fit
-            dof = k(e["name"]) + k(d["name"])
+            dof = _dof(e["name"]) + _dof(d["name"])
             score = fitting.score(charged(fit.rss, names), dof, n_eff, floor)
             need = all(fit.rss < m["rss"] - ranking.CREDIT_FACTOR * credit.get(o, 0.0) - tol.get(o, 0.0)
                        for m, o in ((e, d["name"]), (d, e["name"])))
