@@ -9,7 +9,7 @@ from matlearn.diagnosis import history, ranking, selection
 from matlearn.diagnosis.effects import EffectContext
 from matlearn.diagnosis.fitting import locate_region
 from matlearn.diagnosis.problem import Problem
-from matlearn.diagnosis.selection import _pair_challenge
+from matlearn.diagnosis.selection import _pair_challenge, _pair_rescue
 from matlearn.recording import load_recording
 
 from diagnosis_cases import tiny_case
@@ -328,3 +328,32 @@ def test_a_pair_with_a_family_containing_the_lead_is_not_a_challenger(monkeypatc
     verdict, _ = _pair_challenge(None, None, ranked, ["strain_dependent_damping"], ranked[0]["_fit"], 1000.0,
                                  0.01, {}, {}, lambda m: None)
     assert verdict == ["stiffness_scale", "rayleigh_damping"]
+
+
+def test_a_significant_gap_no_single_family_explains_is_rescued_by_a_pair_of_any_kind(monkeypatch):
+    # random seed 8's capsule r8_03 (tension nonlinearity + a stiffer region), rounded: each single
+    # fit explains ~0.42 of the residual above the floor; tension + region jointly 0.80
+    rss0, floor = 0.0445, 0.0072
+    pair_rss = {frozenset({"tension_nonlinearity", "heterogeneity"}): 0.0146,
+                frozenset({"tension_nonlinearity", "compression_nonlinearity"}): 0.0288,
+                frozenset({"compression_nonlinearity", "heterogeneity"}): 0.0190,
+                frozenset({"heterogeneity", "stiffness_scale"}): 0.001,  # nested: never fitted
+                frozenset({"tension_nonlinearity", "stiffness_scale"}): 0.0289,
+                frozenset({"compression_nonlinearity", "stiffness_scale"}): 0.0290}
+    ranked, calls = _pair_setup(monkeypatch, pair_rss)
+    single = {"tension_nonlinearity": 0.0290, "compression_nonlinearity": 0.0290, "heterogeneity": 0.0295,
+              "stiffness_scale": 0.0440, "density": 0.0440, "rayleigh_damping": 0.0441}
+    ranked = [{"name": n, "rss": r, "_fit": SimpleNamespace(rss=r, params={n: [0.1]})} for n, r in single.items()]
+    verdict, fit = _pair_rescue(None, None, ranked, 1000.0, floor, rss0, {}, {}, lambda m: None)
+    assert verdict == ["tension_nonlinearity", "heterogeneity"] and fit.rss == 0.0146
+    # the top 4 by residual, no density (the scale's mirror), no family with one nested in it
+    assert all("rayleigh_damping" not in c and "density" not in c for c in calls)
+    assert frozenset({"heterogeneity", "stiffness_scale"}) not in calls
+    # a pair that still explains less than half of the excess is no explanation either
+    for k in pair_rss:
+        pair_rss[k] = max(pair_rss[k], 0.0275)
+    assert _pair_rescue(None, None, ranked, 1000.0, floor, rss0, {}, {}, lambda m: None) is None
+    # nor is one whose second member adds less than 2.5x its credit to the first
+    pair_rss[frozenset({"tension_nonlinearity", "heterogeneity"})] = 0.0146
+    assert _pair_rescue(None, None, ranked, 1000.0, floor, rss0, {"heterogeneity": 0.006}, {},
+                        lambda m: None) is None

@@ -30,7 +30,7 @@ from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContex
 from .problem import Problem
 from .selection import (ADD_FACTOR, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE, _add_nested_ties,
                         _dof, _explained_excess, _forward_select, _linearisation_refuted,
-                        _pair_challenge, _rank, _resolve_nested, _shortfall_replacements,
+                        _pair_challenge, _pair_rescue, _rank, _resolve_nested, _shortfall_replacements,
                         _still_unexplained, _support_or_region)
 
 # per-recording start decision (problem.start_in_motion); False: every recording starts at rest
@@ -353,10 +353,17 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             say(f"marginal gap ({rss0 / rss_wide:.2f} x conservative floor): {best['name']} explains "
                 f"{share:.2f} of the residual above the noise, leave-one-recording-out rss {loo}: "
                 f"claimed {ok}")
-        if ok:
-            verdict, selected = [best["name"]], fit
-            verdict, selected = _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, rss_floor, credit,
-                                                tol, say)
+        rescued = None
+        if not ok and significant:
+            # no single family explains the significant gap: two together may (_pair_rescue)
+            rescued = _pair_rescue(P, ctx, ranked, n_eff, rss_floor, rss0, credit, tol, say)
+        if ok or rescued:
+            if rescued:
+                verdict, selected = rescued
+            else:
+                verdict, selected = [best["name"]], fit
+                verdict, selected = _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, rss_floor,
+                                                    credit, tol, say)
             selected = _forward_select(P, ctx, selected, ranked, verdict, n_eff, rss_wide, rss0, say)
             # final refit of the verdict's parameters together (what the held-out gap uses)
             polished = fitting.refine(P, ctx, list(selected.params), selected.params, iterations=4,
