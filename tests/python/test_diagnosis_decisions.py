@@ -363,11 +363,11 @@ def test_a_significant_gap_no_single_family_explains_is_rescued_by_a_pair_of_any
                         lambda m: None) is None
 
 
-def test_a_pair_no_better_than_the_lead_with_the_same_companion_keeps_the_lead(monkeypatch):
+def test_a_pair_no_better_than_the_lead_with_the_same_companion_gives_way_to_that_completion(monkeypatch):
     # random seed 6's soft support r6_01 (rounded): the clamp layer leads (9.7e-2); a located
     # region + Rayleigh beats it (8.6e-2), but the clamp layer + Rayleigh does as well (8.5e-2,
-    # one parameter fewer): the pair's gain is its companion's, the lead stays (forward selection
-    # may add the damping to it)
+    # one parameter fewer): the pair's gain is its companion's, and the completed lead is the
+    # pair the data prefer
     pair_rss = {frozenset({"heterogeneity", "rayleigh_damping"}): 0.086,
                 frozenset({"support_compliance", "rayleigh_damping"}): 0.085}
     _, calls = _pair_setup(monkeypatch, pair_rss)
@@ -375,8 +375,13 @@ def test_a_pair_no_better_than_the_lead_with_the_same_companion_keeps_the_lead(m
     ranked = [{"name": n, "rss": r, "_fit": SimpleNamespace(rss=r, params={n: [0.1]})} for n, r in rows.items()]
     verdict, fit = _pair_challenge(None, None, ranked, ["support_compliance"], ranked[0]["_fit"], 1000.0, 0.009,
                                    {}, {}, lambda m: None)
-    assert verdict == ["support_compliance"] and fit is ranked[0]["_fit"]
+    assert verdict == ["support_compliance", "rayleigh_damping"] and fit.rss == 0.085
     assert frozenset({"support_compliance", "rayleigh_damping"}) in calls
+    # the completion is held to the same bar as any pair: where the damping adds less than 2.5x
+    # its credit to the clamp layer (and to the region), the lead stays alone
+    verdict, fit = _pair_challenge(None, None, ranked, ["support_compliance"], ranked[0]["_fit"], 1000.0, 0.009,
+                                   {"rayleigh_damping": 0.01}, {}, lambda m: None)
+    assert verdict == ["support_compliance"] and fit is ranked[0]["_fit"]
     # where the lead with that companion fits clearly worse, the pair replaces it
     pair_rss[frozenset({"support_compliance", "rayleigh_damping"})] = 0.095
     verdict, _ = _pair_challenge(None, None, ranked, ["support_compliance"], ranked[0]["_fit"], 1000.0, 0.009,
