@@ -323,6 +323,13 @@ def _joint_fit(P, ctx, a, b, say):
     return fit
 
 
+def _charged_score(rss, names, credit, n_eff, floor) -> float:
+    """Information criterion of a fit of the families `names` (one or more) with its residual
+    charged CREDIT_FACTOR x the sum of their discretisation credits."""
+    rss = rss + ranking.CREDIT_FACTOR * sum(credit.get(n, 0.0) for n in names)
+    return fitting.score(rss, sum(_dof(n) for n in names), n_eff, floor)
+
+
 def _members_needed(fit, a, b, credit, tol) -> bool:
     """Each member of a jointly fitted pair adds to the other: the pair beats each member's own
     single fit by more than CREDIT_FACTOR x the other member's credit and the noise."""
@@ -348,8 +355,7 @@ def _pair_rescue(P, ctx, ranked, n_eff, floor, rss0, credit, tol, say, top=RESCU
                   key=lambda r: r["rss"])[:top]
     if len(rows) < 2:
         return None
-    charged = lambda rss, names: rss + ranking.CREDIT_FACTOR * sum(credit.get(n, 0.0) for n in names)  # noqa: E731
-    single = min(fitting.score(charged(r["rss"], [r["name"]]), _dof(r["name"]), n_eff, floor) for r in rows)
+    single = min(_charged_score(r["rss"], [r["name"]], credit, n_eff, floor) for r in rows)
     order = [r["name"] for r in ranked]
     best = None
     for i, a in enumerate(rows):
@@ -358,7 +364,7 @@ def _pair_rescue(P, ctx, ranked, n_eff, floor, rss0, credit, tol, say, top=RESCU
             if any(NESTS.get(x, (None,))[0] == y for x, y in (names, names[::-1])):
                 continue
             fit = _joint_fit(P, ctx, a, b, say)
-            score = fitting.score(charged(fit.rss, names), _dof(a["name"]) + _dof(b["name"]), n_eff, floor)
+            score = _charged_score(fit.rss, names, credit, n_eff, floor)
             need = _members_needed(fit, a, b, credit, tol)
             explained = _explained_excess(fit.rss, rss0, floor)
             say(f"rescue pair {' + '.join(names)}: rss {fit.rss:.3e} (score {score:.1f}, best single "
@@ -400,25 +406,26 @@ def _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, floor, credit, tol
     # nested *in* the lead makes a different explanation and stays (random seed 8's tension +
     # Rayleigh and Rayleigh + support, led by strain-dependent damping)
     contains = {lead["name"]} | {big for big, (small, _) in NESTS.items() if small == lead["name"]}
-    charged = lambda rss, names: rss + ranking.CREDIT_FACTOR * sum(credit.get(n, 0.0) for n in names)  # noqa: E731
-    lead_score = fitting.score(charged(lead["rss"], [lead["name"]]), _dof(lead["name"]), n_eff, floor)
-    # the lead completed by a challenger's member of the other kind, fitted jointly (cached by
-    # that member): a pair gains nothing over the lead when the lead with the same companion
-    # explains the data as well (as well beyond the noise, and a criterion no worse), and the
-    # completion is the candidate instead: random seed 6's soft support r6_01, clamp layer
-    # 9.7e-2, became a located region + Rayleigh at 8.6e-2 while the clamp layer + Rayleigh
-    # leaves 4.7e-2
+    lead_score = _charged_score(lead["rss"], [lead["name"]], credit, n_eff, floor)
+
+    def beats_lead(rss, score):
+        return rss < lead["rss"] - tol.get(lead["name"], 0.0) and score < lead_score
+
+    # the lead completed by a challenger's member of the other kind (its companion), fitted
+    # jointly and cached by that member: a pair gains nothing over the lead when the lead with
+    # the same companion explains the data as well (as well beyond the noise, and a criterion no
+    # worse), and the completion is the candidate instead: random seed 6's soft support r6_01,
+    # clamp layer 9.7e-2, became a located region + Rayleigh at 8.6e-2 while the clamp layer +
+    # Rayleigh leaves 4.7e-2
     kind = ELASTIC if lead["name"] in ELASTIC else DISSIPATIVE if lead["name"] in DISSIPATIVE else None
     completed = {}
 
-    def rival(e, d):
-        other = d if kind is ELASTIC else e
-        if other["name"] not in completed:
-            got = _joint_fit(P, ctx, lead, other, say)
-            names = [lead["name"], other["name"]]
-            completed[other["name"]] = (got, names, fitting.score(
-                charged(got.rss, names), _dof(lead["name"]) + _dof(other["name"]), n_eff, floor))
-        return completed[other["name"]]
+    def completion(companion):
+        if companion["name"] not in completed:
+            got = _joint_fit(P, ctx, lead, companion, say)
+            names = [lead["name"], companion["name"]]
+            completed[companion["name"]] = (got, names, _charged_score(got.rss, names, credit, n_eff, floor))
+        return completed[companion["name"]]
 
     best = None
     for e in elastic:
@@ -427,37 +434,34 @@ def _pair_challenge(P, ctx, ranked, verdict, selected, n_eff, floor, credit, tol
             if contains & set(names):
                 continue
             fit = _joint_fit(P, ctx, e, d, say)
-            dof = _dof(e["name"]) + _dof(d["name"])
-            score = fitting.score(charged(fit.rss, names), dof, n_eff, floor)
+            score = _charged_score(fit.rss, names, credit, n_eff, floor)
             need = _members_needed(fit, e, d, credit, tol)
-            beats = fit.rss < lead["rss"] - tol.get(lead["name"], 0.0) and score < lead_score
+            beats = beats_lead(fit.rss, score)
             say(f"pair {e['name']} + {d['name']}: rss {fit.rss:.3e} (score {score:.1f}) vs lead "
                 f"{lead['name']} {lead['rss']:.3e} (score {lead_score:.1f}); each member needed {need}, "
                 f"beats the lead {beats}")
-            same = e if kind is ELASTIC else d  # the member the lead's completion replaces
+            # the member the lead's completion replaces, and the companion it keeps
+            same, companion = (e, d) if kind is ELASTIC else (d, e)
             if need and beats and kind is not None and NESTS.get(lead["name"], (None,))[0] != same["name"]:
                 # (a lead that contains that member, strain-dependent damping over Rayleigh, has
                 # a completion containing the pair: which of the two is right is the nested
                 # families' question, decided on the single fits; random seed 8's tension +
                 # Rayleigh r8_04, led by strain-dependent damping, is `[rayleigh_damping,
                 # support_compliance]` by the pair, the damping of the truth)
-                r_fit, r_names, r_score = rival(e, d)
+                r_fit, r_names, r_score = completion(companion)
                 tied = r_fit.rss <= fit.rss + tol.get(lead["name"], 0.0) and r_score <= score
                 say(f"pair {e['name']} + {d['name']} against the lead with the same companion "
                     f"({' + '.join(r_names)}: rss {r_fit.rss:.3e}, score {r_score:.1f}): "
                     f"{'as good: the completed lead is the candidate' if tied else 'the pair is better'}")
                 beats = not tied
-                if tied:
-                    # the lead with that companion is then the pair the data prefer, held to the
-                    # same bar as any pair (beats the lead, each member needed): the named plastic
-                    # set history_plasticity's compression + damping pair, which replaced a
-                    # tension lead, is tension + Rayleigh (6.5e-2 against 7.8e-2), and the history
-                    # model is measured against it
-                    other = d if kind is ELASTIC else e
-                    ok = (r_fit.rss < lead["rss"] - tol.get(lead["name"], 0.0) and r_score < lead_score
-                          and _members_needed(r_fit, lead, other, credit, tol))
-                    if ok and (best is None or r_score < best[0]):
-                        best = (r_score, sorted(r_names, key=order.index), r_fit)
+                # the completed lead is then the pair the data prefer, held to the same bar as
+                # any pair (beats the lead, each member needed): the named plastic set
+                # history_plasticity's compression + damping pair, which replaced a tension lead,
+                # is tension + Rayleigh (6.5e-2 against 7.8e-2), and the history model is
+                # measured against it
+                if (tied and beats_lead(r_fit.rss, r_score) and _members_needed(r_fit, lead, companion, credit, tol)
+                        and (best is None or r_score < best[0])):
+                    best = (r_score, sorted(r_names, key=order.index), r_fit)
             if need and beats and (best is None or score < best[0]):
                 best = (score, sorted(names, key=order.index), fit)
     if best is None:
