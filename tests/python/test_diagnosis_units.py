@@ -425,3 +425,46 @@ def test_cli_diagnose_passes_follow_damping(tmp_path, monkeypatch):
     assert main(["diagnose", str(path), "--out", str(tmp_path / "a"), "--no-report", "--follow-damping"]) in (0, None)
     assert main(["diagnose", str(path), "--out", str(tmp_path / "b"), "--no-report"]) in (0, None)
     assert seen == [True, None]
+
+
+def test_scan_profiles_the_discretisation_offset_a_family_needs(monkeypatch):
+    """A family whose change also shifts the overall stiffness (a lower Poisson ratio stiffens
+    shear) matches the data only together with the discretisation offset. Scanned alone, every
+    grid point looks worse than the baseline; with the offset profiled out linearly inside its
+    bounds, the grid point at the truth wins and its offset is returned for the local fit."""
+    rng = np.random.default_rng(3)
+    u, j = rng.standard_normal((2, 200))
+    t_true = -1.2
+    y = t_true * u  # the data: the family at t_true with the offset that cancels its stiffness part
+
+    def residual(problem, ctx, params, recs=None):
+        t = float(params["poisson_ratio"][0])
+        return t * (u + 5.0 * j) - y  # the family's own stiffness part, 5 j per unit
+
+    monkeypatch.setattr(fitting, "residual_of", residual)
+    r0 = residual(None, None, {"poisson_ratio": [0.0]})
+    plain = fitting.scan(None, None, "poisson_ratio", 0.0, r0)
+    assert plain[0] == 0.0  # nothing on the grid beats the baseline without the offset
+    t, off = fitting.scan(None, None, "poisson_ratio", 0.0, r0, profile=(j, (-10.0, 10.0)))
+    assert t[0] == t_true and off == pytest.approx(-5.0 * t_true, rel=1e-9)
+    # the offset stays inside its bounds
+    _, off_b = fitting.scan(None, None, "poisson_ratio", 0.0, r0, profile=(j, (-0.5, 0.5)))
+    assert abs(off_b) <= 0.5
+
+
+def test_levenberg_marquardt_raises_the_damping_until_a_step_helps(monkeypatch):
+    """A residual whose Gauss-Newton step overshoots (a saturating response, arctan(4 x) from
+    x = 0.5: the full step lands at x = -1.04, worse): the first damped steps are rejected too,
+    and the fit keeps raising the damping (fitting.LM_TRIES) until a step lowers the residual
+    instead of stopping where it started."""
+    def residual(problem, ctx, params, recs=None):
+        return np.array([np.arctan(4.0 * float(params["stiffness_scale"][0]))])
+
+    monkeypatch.setattr(fitting, "residual_of", residual)
+    start = {"stiffness_scale": [0.5]}
+    cost0 = float(residual(None, None, start) @ residual(None, None, start))
+    fit = fitting.refine(None, None, ["stiffness_scale"], start, iterations=3, step=0.07)
+    assert fit.rss < 0.5 * cost0
+    monkeypatch.setattr(fitting, "LM_TRIES", 2)
+    stuck = fitting.refine(None, None, ["stiffness_scale"], start, iterations=3, step=0.07)
+    assert stuck.rss == pytest.approx(cost0)  # two tries were not enough: the old fit never moved
