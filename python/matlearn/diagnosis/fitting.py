@@ -184,10 +184,6 @@ def linear_fit(J: np.ndarray, r0: np.ndarray, max_step: float = 3.0):
     return th, float(r @ r)
 
 
-# damping increases (x10 each) tried per Levenberg-Marquardt iteration before the fit stops
-LM_TRIES = 4
-
-
 def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, step=0.07,
            progress=None, target=None, recs=None, r_zero=None) -> Fit:
     """Levenberg-Marquardt over the joint parameters of `names` on simulated residuals (minus
@@ -220,7 +216,7 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
             evals += 1
         JTJ, g = J.T @ J, J.T @ r
         improved = False
-        for _ in range(LM_TRIES):
+        for _ in range(2):
             A = JTJ + mu * np.diag(np.diag(JTJ) + 1e-12 * np.trace(JTJ) + 1e-300)
             dx = -np.linalg.solve(A, g)
             if np.abs(dx).max() > 2.0:
@@ -244,37 +240,21 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
 
 
 def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-2.4, -1.2, -0.6, -0.3, 0.3, 0.6, 1.2),
-         target=None, recs=None, profile=None):
+         target=None, recs=None) -> np.ndarray:
     """Best of the linearised estimate and a coarse grid of a 1-parameter family (simulated),
     as the start of the local refinement. The grid reaches large changes (a Poisson ratio
     0.24 lower, a stiffness 3x higher or 11x lower): an oscillation's phase makes the residual
     multimodal, so a large true change is not reached by local steps from a small one.
-    r0: the residual at theta = 0; target, recs: as in `refine`.
-    profile: (j, (lo, hi)) for a family fitted together with the bounded discretisation offset
-    (effects.NUISANCE): j the residual's sensitivity to the offset; each grid point is then
-    scored with the offset profiled out linearly inside its bounds, and the return value is
-    (theta, offset). Without it a family that needs the offset to move with it looks worse than
-    the baseline at every grid point (named Poisson bar, nu 0.42 -> 0.22: no grid point beat the
-    baseline, and the local fit crept from zero)."""
-    def cost(r):
-        if profile is None:
-            return float(r @ r), 0.0
-        j, (lo, hi) = profile
-        jj = float(j @ j)
-        t = float(np.clip(-float(j @ r) / jj, lo, hi)) if jj > 0 else 0.0
-        rr = r + t * j
-        return float(rr @ rr), t
-
-    c0, t0 = cost(r0)
-    best = (c0, np.zeros(1), t0)
+    r0: the residual at theta = 0; target, recs: as in `refine`."""
+    best = (float(r0 @ r0), np.zeros(1))
     for t in [float(np.asarray(theta_cheap).ravel()[0])] + list(grid):
         r = residual_of(problem, ctx, {name: [t]}, recs)
         if target is not None:
             r = r - target
-        c, off = cost(r)
+        c = float(r @ r)
         if c < best[0]:
-            best = (c, np.array([t]), off)
-    return best[1] if profile is None else (best[1], best[2])
+            best = (c, np.array([t]))
+    return best[1]
 
 
 def score(rss: float, dof: int, n_eff: float, rss_floor: float) -> float:

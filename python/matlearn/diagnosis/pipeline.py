@@ -35,9 +35,6 @@ from .selection import (ADD_FACTOR, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE, 
 
 # per-recording start decision (problem.start_in_motion); False: every recording starts at rest
 START_DECISION = True
-# Levenberg-Marquardt iterations of each family's simulated fit
-REFINE_ITERATIONS = 2
-SCAN_PROFILE = True
 
 
 def _printer(progress):
@@ -239,21 +236,15 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             start = {name: list(het_start)}
         elif len(FAMILIES[name].parameters) == 1:
             # oscillation phases make 1-parameter scale fits multimodal: scan before refining
-            # (with the discretisation offset profiled out where the family is fitted with it)
-            if name in WITH_NUISANCE and SCAN_PROFILE:
-                t, off = fitting.scan(P, ctx, name, cheap[name][0], r0,
-                                      profile=(J["stiffness_scale"][:, 0], nuis))
-                start = {name: t, NUISANCE: [off]}
-            else:
-                start = {name: fitting.scan(P, ctx, name, cheap[name][0], r0)}
+            start = {name: fitting.scan(P, ctx, name, cheap[name][0], r0)}
         names = [name] + ([NUISANCE] if name in WITH_NUISANCE else [])
-        fits[name] = fitting.refine(P, ctx, names, start, iterations=REFINE_ITERATIONS, progress=say, r_zero=r0)
+        fits[name] = fitting.refine(P, ctx, names, start, iterations=2, progress=say, r_zero=r0)
         if name in NESTS and NESTS[name][0] in fits:
             # the larger family from the smaller one's optimum: it can only do better
             small, embed = NESTS[name]
             emb = dict(fits[small].params)
             emb[name] = embed(emb.pop(small))
-            alt = fitting.refine(P, ctx, names, emb, iterations=REFINE_ITERATIONS, progress=say)
+            alt = fitting.refine(P, ctx, names, emb, iterations=2, progress=say)
             if alt.rss < fits[name].rss:
                 fits[name] = alt
         if name == "heterogeneity":  # coarse patches -> element-level region boundary
