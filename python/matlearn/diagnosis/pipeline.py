@@ -35,6 +35,10 @@ from .selection import (ADD_FACTOR, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE, 
 
 # per-recording start decision (problem.start_in_motion); False: every recording starts at rest
 START_DECISION = True
+# the floor's discretisation term (and the credits' scale) from what the train recordings' own
+# debias weights leave of the discrepancy (_weight_floor_scale) instead of the weight's whole
+# range: an experiment of session 19, off
+FLOOR_FROM_SPREAD = False
 
 
 def _printer(progress):
@@ -132,6 +136,13 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     rss_noise_hi = rss_noise * (1.0 + 2.0 * np.sqrt(2.0 / max(len(r0), 1)))
     rss_floor = rss_noise_hi + rss_disc
     rss_wide = rss_noise_hi + rss_disc_wide
+    credit_scale = d_scale
+    if FLOOR_FROM_SPREAD:  # experiment (session 19), off by default
+        left = _weight_floor_scale(P, r0_raw, d_res, np.sqrt(d_scale))
+        if left is not None:
+            credit_scale = max(left, 1e-3 * d_scale)
+            rss_floor = rss_noise_hi + credit_scale * float(d_res @ d_res)
+            say(f"floor from the recordings' debias weights (scale {credit_scale:.4f} of |b|^2): {rss_floor:.3e}")
     # The discretisation correction assumes a truth finer than the model. Recordings that the
     # nominal model on its own mesh already matches within the marker noise (e.g. made with the
     # model's own mesh) hold no gap to explain: removing a discretisation error they do not have
@@ -205,7 +216,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # change at the baseline's weight, and that is what can mimic the error left (their raw
     # columns alone mostly re-shape the coarse mesh's own error, which the correction follows)
     J_credit = _credit_columns(P, J_raw, r0_raw)
-    credit = ranking.discretisation_credit(J_credit, d_res, slice(0, len(d_res)), d_scale,
+    credit = ranking.discretisation_credit(J_credit, d_res, slice(0, len(d_res)), credit_scale,
                                            j_offset=J_raw["stiffness_scale"][:, 0],
                                            region=(Jp_raw, fitting.locate_region))
     credit["density"] = credit["stiffness_scale"]
@@ -214,7 +225,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # truth in another pattern, a model 1-2 tets across: up to ~2 |b|^2). Its credit (measured
     # with the region re-located on the discrepancy itself) is scaled like that floor; the
     # other families act everywhere or at a fixed place (the clamp).
-    credit["heterogeneity"] *= (rss_disc_wide / rss_disc) if rss_disc > 0 else 1.0
+    credit["heterogeneity"] *= (rss_disc_wide / rss_disc * d_scale / credit_scale) if rss_disc > 0 else 1.0
     tol = {n: ranking.noise_tolerance(rss_noise, len(r0), _dof(n)) for n in cheap}
     say("discretisation credit: " + ", ".join(f"{n} {c:.2e}" for n, c in credit.items()))
     order = sorted(cheap, key=lambda n: fitting.score(cheap[n][1], _dof(n), n_eff, rss_floor))
@@ -504,6 +515,33 @@ def _credit_columns(P, J_raw, r0_raw):
             cols[:, :2] += w0 * B
             out[name] = cols
     return out
+
+
+def _weight_floor_scale(P, r_raw, b, cap):
+    """The discrepancy b's share left in the debiased baseline residual, from the train
+    recordings' own least-squares weights of b in their raw residual (r_k = -w_k b_k + ...):
+    sum_k min(|w_k - w|, cap)^2 |b_k|^2 / |b|^2, w the one weight the debias applies (the
+    stacked least-squares weight clipped to DISC_RANGE) and cap the half-range the floor assumes
+    without this measurement. Where every recording carries b with the same weight inside the
+    range, little of it is left; a recording that wants more than the range allows, or that does
+    not follow b, keeps up to the full term. None with fewer than two recordings with a
+    discrepancy (one recording cannot tell its weight from an effect)."""
+    from .discretisation import DISC_RANGE
+
+    bb = float(b @ b)
+    if bb <= 0:
+        return None
+    w = float(np.clip(-float(r_raw @ b) / bb, *DISC_RANGE))
+    left, k, off = 0.0, 0, 0
+    for rec in P.train:
+        n = 3 * int(rec.seen.sum())
+        rk, bk = r_raw[off:off + n], b[off:off + n]
+        off += n
+        b2 = float(bk @ bk)
+        if b2 > 0:
+            k += 1
+            left += min(abs(-float(rk @ bk) / b2 - w), cap) ** 2 * b2
+    return left / bb if k > 1 else None
 
 
 def _own_floor(P, ctx, fit, rss_floor, rss_noise_hi, d_scale):
