@@ -225,7 +225,9 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # truth in another pattern, a model 1-2 tets across: up to ~2 |b|^2). Its credit (measured
     # with the region re-located on the discrepancy itself) is scaled like that floor; the
     # other families act everywhere or at a fixed place (the clamp).
-    credit["heterogeneity"] *= (rss_disc_wide / rss_disc * d_scale / credit_scale) if rss_disc > 0 else 1.0
+    credit["heterogeneity"] *= (rss_disc_wide / rss_disc) if rss_disc > 0 else 1.0
+    if credit_scale != d_scale:  # FLOOR_FROM_SPREAD: the region's credit keeps the conservative scale
+        credit["heterogeneity"] *= d_scale / credit_scale
     tol = {n: ranking.noise_tolerance(rss_noise, len(r0), _dof(n)) for n in cheap}
     say("discretisation credit: " + ", ".join(f"{n} {c:.2e}" for n, c in credit.items()))
     order = sorted(cheap, key=lambda n: fitting.score(cheap[n][1], _dof(n), n_eff, rss_floor))
