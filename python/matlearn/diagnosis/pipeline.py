@@ -37,7 +37,8 @@ from .selection import (ADD_FACTOR, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE, 
 START_DECISION = True
 # the floor's discretisation term (and the credits' scale) from what the train recordings' own
 # debias weights leave of the discrepancy (_weight_floor_scale) instead of the weight's whole
-# range: an experiment of session 19, off
+# range: an experiment of session 19, rejected in session 20 (one gain and two false claims on 15
+# more suite cases; docs/results.md), kept off
 FLOOR_FROM_RECORDING_WEIGHTS = False
 
 
