@@ -286,7 +286,6 @@ def build_case(work: Path, name: str, effects: list, shape_kind: str, seed: int)
     E0 = 1e6 * (2 * np.pi * f1 / w) ** 2
     E0 = max(E0, 1e6 * sag / (0.04 * size))
     w, sag, comp = linear_props(model_mesh, Material("corotated", E0, nu0, rho0), fixed_m, pull_m, gravity)
-    nominal = Material("corotated", E0, nu0, rho0)
     nom_damp = Damping(float(rng.uniform(0.0, 0.5)), float(rng.uniform(0.8e-3, 2.5e-3)))
 
     # truth

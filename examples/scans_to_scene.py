@@ -16,8 +16,6 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from matlearn import meshes
 from matlearn.clouds import ScanSettings, default_cameras, write_cloud_folder
 from matlearn.clouds.ingest import make_scene_from_scans
