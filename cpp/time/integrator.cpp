@@ -34,6 +34,7 @@ void Integrator::set_state(const MatX3& x, const MatX3& v) {
   x_ = x;
   v_ = v;
   has_prev_v_ = false;
+  unconverged_ = 0;
 }
 
 void Integrator::set_prescribed(const VecXi& vertices) {
@@ -97,6 +98,7 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
   bool refresh = !(reuse && factor_valid_);
   int fresh = 0;
   double prev_dv = 0.0;
+  bool converged = false;
   for (int it = 0; it < 4 * opts_.max_newton; ++it) {
     auto t0 = Clock::now();
     MatX3 x = x0 + h_ * v;
@@ -159,11 +161,15 @@ void Integrator::step(const MatX3& f_ext, const MatX3* targets) {
     last_iters_ = it + 1;
     timings_.iterations = last_iters_;
     timings_.factorizations = fresh;
-    if (dv_norm <= opts_.tolerance * (std::sqrt(vnorm2) + v_ref)) break;
+    if (dv_norm <= opts_.tolerance * (std::sqrt(vnorm2) + v_ref)) {
+      converged = true;
+      break;
+    }
     if (fresh >= opts_.max_newton) break;
     prev_dv = dv_norm;
     refresh = !reuse || slow;
   }
+  if (!converged && opts_.max_newton > 1) ++unconverged_;
   check_divergence(v, h_, size_, steps_);
   prev_v_ = v_;
   has_prev_v_ = true;

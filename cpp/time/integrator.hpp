@@ -61,6 +61,11 @@ class Integrator {
   StepOptions& options() { return opts_; }
   /// Newton iterations used by the last step.
   int last_iterations() const { return last_iters_; }
+  /// Steps since construction or the last set_state() whose Newton iteration stopped at its
+  /// iteration limit without meeting the tolerance (the step was kept as it was: an inaccurate,
+  /// possibly unstable step). Never counted with max_newton = 1, whose single linearised solve
+  /// is the step by design.
+  int unconverged_steps() const { return unconverged_; }
   /// Phase timings of the last step.
   const StepTimings& last_timings() const { return timings_; }
 
@@ -103,7 +108,7 @@ class Integrator {
   MatX3 x_, v_;
   MatX3 prev_v_;  // velocity before the last step (for the extrapolated initial guess)
   bool has_prev_v_ = false;
-  int steps_ = 0, last_iters_ = 0;
+  int steps_ = 0, last_iters_ = 0, unconverged_ = 0;
   StepTimings timings_, static_timings_;
   VecXi dof_map_;  // global dof -> free index or -1
   int n_free_ = 0;

@@ -47,6 +47,11 @@ void define_time(py::module_& m) {
       .def_property_readonly("steps_taken", &Integrator::steps_taken)
       .def_property_readonly("last_iterations", &Integrator::last_iterations)
       .def_property_readonly(
+          "unconverged_steps", &Integrator::unconverged_steps,
+          "Steps since construction or set_state() whose Newton iteration hit its limit without "
+          "meeting the tolerance (kept as they were: inaccurate, possibly unstable); never counted "
+          "with max_newton = 1.")
+      .def_property_readonly(
           "last_timings",
           [](const Integrator& I) {
             const auto& t = I.last_timings();

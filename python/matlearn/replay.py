@@ -20,11 +20,31 @@ vertex of each drive point), following the drive displacement of their nearest d
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .embedding import Embedding, embed_points
 from .recording import Recording
+
+
+class NonConvergenceWarning(RuntimeWarning):
+    """Some implicit steps of a simulation stopped at the Newton iteration limit without meeting
+    the tolerance; they were kept as they were, so the trajectory may be inaccurate."""
+
+
+def warn_unconverged(integ, what: str) -> int:
+    """Warn (NonConvergenceWarning) when `integ` kept steps whose Newton iteration did not
+    converge since its last set_state; returns their number. Linearised integrators
+    (max_newton = 1) never count any."""
+    n = int(integ.unconverged_steps)
+    if n:
+        warnings.warn(f"{what}: {n} of {integ.steps_taken} implicit steps stopped at the Newton "
+                      f"iteration limit without converging (kept as they were), so the trajectory may "
+                      f"be inaccurate; try a smaller time step or check the model's parameters",
+                      NonConvergenceWarning, stacklevel=3)
+    return n
 
 
 # ---------------------------------------------------------------------------- drive points
@@ -233,6 +253,7 @@ def simulate_recording(scene, model, rec: Recording, progress=None, state=None,
 
     if after_chunk is None:
         X, Vel = run(steps, 0)
+        warn_unconverged(integ, "simulate_recording")
         return sim_t, X, Vel
     Xs, Vs, s = [], [], 0
     while s < steps:
@@ -243,6 +264,7 @@ def simulate_recording(scene, model, rec: Recording, progress=None, state=None,
         Vs.append(Vel[first:])
         s += k
         after_chunk(s, Xs[-1])
+    warn_unconverged(integ, "simulate_recording")
     return sim_t, np.concatenate(Xs), np.concatenate(Vs)
 
 

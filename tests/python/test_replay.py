@@ -161,3 +161,27 @@ def test_held_pose_survives_failing_newton_solves(setup):
     # every retry fails: the failure is raised, not hidden
     with pytest.raises(RuntimeError, match="Newton"):
         replay._held_pose(scene, model, rec, 0, emb, integ=_Flaky(scene.integrator(model), range(1, 1000)))
+
+
+def test_unconverged_newton_steps_warn():
+    """A fast swing at a 5 ms step: with 2 Newton iterations half the steps stop at the limit
+    without meeting the tolerance, and simulate_recording says how many (NonConvergenceWarning);
+    with the default 8 iterations none does and nothing is said."""
+    import warnings
+
+    mesh = meshes.bar(0.2, 0.04, 0.04, cells=(6, 1, 1))
+    box = [[-1, -1, -1], [1e-3, 1, 1]]
+    scene = Scene(mesh, Material(youngs_modulus=2e5), Damping(alpha_stiffness=0.005),
+                  vertices_in_box(mesh.vertices, box), 5e-3, fixed_box=box)
+    model = scene.model()
+    V0 = np.asarray(mesh.vertices)
+    rec = Recording(np.linspace(0, 0.06, 61), V0, np.repeat(V0[None], 61, 0), at_rest_initially=True)
+    v = np.zeros_like(V0)
+    v[:, 1] = 4.0 * V0[:, 0] / 0.2  # m/s, growing towards the tip
+    with pytest.warns(replay.NonConvergenceWarning, match=r"of 12 implicit steps") as rec_w:
+        replay.simulate_recording(scene, model, rec, state=(V0, v), max_newton=2)
+    n = int(str(rec_w[0].message).split(": ")[1].split(" of ")[0])
+    assert 0 < n <= 12
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", replay.NonConvergenceWarning)
+        replay.simulate_recording(scene, model, rec, state=(V0, v), max_newton=8)

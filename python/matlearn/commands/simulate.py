@@ -59,6 +59,7 @@ def simulate_scene(scene, model, duration: float, force=None, box=None, release:
         X, _ = integ.simulate(steps, np.zeros((n, 3)), 1, progress=progress)
     else:
         X, _ = integ.simulate(steps, f, 1, progress=progress)
+    replay.warn_unconverged(integ, "simulate")
     return scene.time_step * np.arange(steps + 1), X, not release
 
 

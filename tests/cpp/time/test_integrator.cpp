@@ -107,6 +107,34 @@ TEST_CASE(divergence_reports_the_step) {
   CHECK_THROWS(I.step(MatX3::Zero(nv, 3)), InvalidInput);
 }
 
+TEST_CASE(unconverged_steps_are_counted) {
+  // A bar pulled hard at its tip: at h = 10 ms two Newton iteration cannot meet a 1e-12
+  // tolerance (the co-rotated tangent changes with the rotation), thirty can; a linearised
+  // integrator (max_newton = 1) never counts; set_state starts a new count.
+  auto M = bar_model(MaterialModel::Corotated);
+  const int nv = M->mesh().num_vertices();
+  MatX3 f = MatX3::Zero(nv, 3);
+  for (int i = 0; i < nv; ++i)
+    if (M->mesh().vertices()(i, 0) > kL - 1e-9) f(i, 2) = 0.5;
+  const MatX3 x0 = M->mesh().vertices(), v0 = MatX3::Zero(nv, 3);
+  auto run = [&](int max_newton, double tol) {
+    time::StepOptions o;
+    o.max_newton = max_newton;
+    o.tolerance = tol;
+    Integrator I(M, clamped(*M), 1e-2, Vec3::Zero(), o);
+    I.set_state(x0, v0);
+    I.simulate(10, f, 10);
+    const int n = I.unconverged_steps();
+    I.set_state(x0, v0);
+    CHECK(I.unconverged_steps() == 0);
+    return n;
+  };
+  const int tight = run(2, 1e-12), loose = run(30, 1e-7), linear = run(1, 1e-12);
+  CHECK_MSG(tight > 0, "2 Newton iterations at tolerance 1e-12 should leave steps unconverged");
+  CHECK_MSG(loose == 0, std::to_string(loose) + " steps unconverged with 30 iterations");
+  CHECK_MSG(linear == 0, "max_newton = 1 counted " + std::to_string(linear) + " steps");
+}
+
 namespace {
 /// A correction that is identically zero: forces the general (correction) assembly path.
 struct ZeroCorrection final : correction::Correction {
