@@ -425,32 +425,3 @@ def test_cli_diagnose_passes_follow_damping(tmp_path, monkeypatch):
     assert main(["diagnose", str(path), "--out", str(tmp_path / "a"), "--no-report", "--follow-damping"]) in (0, None)
     assert main(["diagnose", str(path), "--out", str(tmp_path / "b"), "--no-report"]) in (0, None)
     assert seen == [True, None]
-
-
-def test_weight_floor_scale_is_what_the_recordings_weights_leave_of_the_discrepancy():
-    """pipeline._weight_floor_scale: each train recording's least-squares weight w_k of the
-    discrepancy b in its raw residual (r = -w_k b + ...) against the one clipped weight w the
-    debias applies; sum_k min(|w_k - w|, cap)^2 |b_k|^2 / |b|^2 with cap half the weight's
-    range; None with one recording."""
-    from types import SimpleNamespace
-
-    from matlearn.diagnosis.discretisation import DISC_RANGE
-    from matlearn.diagnosis.pipeline import _weight_floor_scale
-
-    rng = np.random.default_rng(0)
-    recs = [SimpleNamespace(seen=np.ones(40, bool)), SimpleNamespace(seen=np.ones(25, bool))]
-    b = rng.standard_normal(3 * 65)
-    b1, b2 = float(b[:120] @ b[:120]), float(b[120:] @ b[120:])
-    P = SimpleNamespace(train=recs, disc_weight_range=DISC_RANGE)
-    cap = 0.5 * (DISC_RANGE[1] - DISC_RANGE[0])
-    # both recordings carry b with one weight inside the range: nothing of b is left
-    assert _weight_floor_scale(P, -0.9 * b, b) == pytest.approx(0.0, abs=1e-24)
-    # two weights: each recording's distance from the pooled weight
-    w = np.r_[np.full(120, 0.7), np.full(75, 1.1)]
-    pooled = (0.7 * b1 + 1.1 * b2) / (b1 + b2)
-    want = ((0.7 - pooled) ** 2 * b1 + (1.1 - pooled) ** 2 * b2) / (b1 + b2)
-    assert _weight_floor_scale(P, -w * b, b) == pytest.approx(want, rel=1e-10)
-    # data wanting more than the range allows keep the full term (the distance is capped)
-    assert _weight_floor_scale(P, -3.0 * b, b) == pytest.approx(cap**2, rel=1e-10)
-    one = SimpleNamespace(train=recs[:1], disc_weight_range=DISC_RANGE)
-    assert _weight_floor_scale(one, -b[:120], b[:120]) is None

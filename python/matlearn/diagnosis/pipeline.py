@@ -35,11 +35,6 @@ from .selection import (ADD_FACTOR, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE, 
 
 # per-recording start decision (problem.start_in_motion); False: every recording starts at rest
 START_DECISION = True
-# the floor's discretisation term (and the credits' scale) from what the train recordings' own
-# debias weights leave of the discrepancy (_weight_floor_scale) instead of the weight's whole
-# range: an experiment of session 19, rejected in session 20 (one gain and two false claims on 15
-# more suite cases; docs/results.md), kept off
-FLOOR_FROM_RECORDING_WEIGHTS = False
 
 
 def _printer(progress):
@@ -137,13 +132,6 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     rss_noise_hi = rss_noise * (1.0 + 2.0 * np.sqrt(2.0 / max(len(r0), 1)))
     rss_floor = rss_noise_hi + rss_disc
     rss_wide = rss_noise_hi + rss_disc_wide
-    credit_scale = d_scale
-    if FLOOR_FROM_RECORDING_WEIGHTS:  # experiment (session 19), off by default
-        left = _weight_floor_scale(P, r0_raw, d_res)
-        if left is not None:
-            credit_scale = max(left, 1e-3 * d_scale)
-            rss_floor = rss_noise_hi + credit_scale * float(d_res @ d_res)
-            say(f"floor from the recordings' debias weights (scale {credit_scale:.4f} of |b|^2): {rss_floor:.3e}")
     # The discretisation correction assumes a truth finer than the model. Recordings that the
     # nominal model on its own mesh already matches within the marker noise (e.g. made with the
     # model's own mesh) hold no gap to explain: removing a discretisation error they do not have
@@ -217,7 +205,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # change at the baseline's weight, and that is what can mimic the error left (their raw
     # columns alone mostly re-shape the coarse mesh's own error, which the correction follows)
     J_credit = _credit_columns(P, J_raw, r0_raw)
-    credit = ranking.discretisation_credit(J_credit, d_res, slice(0, len(d_res)), credit_scale,
+    credit = ranking.discretisation_credit(J_credit, d_res, slice(0, len(d_res)), d_scale,
                                            j_offset=J_raw["stiffness_scale"][:, 0],
                                            region=(Jp_raw, fitting.locate_region))
     credit["density"] = credit["stiffness_scale"]
@@ -227,8 +215,6 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # with the region re-located on the discrepancy itself) is scaled like that floor; the
     # other families act everywhere or at a fixed place (the clamp).
     credit["heterogeneity"] *= (rss_disc_wide / rss_disc) if rss_disc > 0 else 1.0
-    if credit_scale != d_scale:  # FLOOR_FROM_RECORDING_WEIGHTS: the region's credit keeps the conservative scale
-        credit["heterogeneity"] *= d_scale / credit_scale
     tol = {n: ranking.noise_tolerance(rss_noise, len(r0), _dof(n)) for n in cheap}
     say("discretisation credit: " + ", ".join(f"{n} {c:.2e}" for n, c in credit.items()))
     order = sorted(cheap, key=lambda n: fitting.score(cheap[n][1], _dof(n), n_eff, rss_floor))
@@ -518,28 +504,6 @@ def _credit_columns(P, J_raw, r0_raw):
             cols[:, :2] += w0 * B
             out[name] = cols
     return out
-
-
-def _weight_floor_scale(P, r_raw, b):
-    """The discrepancy b's share left in the debiased baseline residual, from the train
-    recordings' own least-squares weights of b in their raw residual (r_k = -w_k b_k + ...):
-    sum_k min(|w_k - w|, cap)^2 |b_k|^2 / |b|^2, w the one weight the debias applies
-    (fitting.debias_weight) and cap the half of P.disc_weight_range that the floor charges
-    without this measurement. Where every recording carries b with the same weight inside the
-    range, little of it is left; a recording that wants more than the range allows, or that does
-    not follow b, keeps up to the full term. None with fewer than two recordings with a
-    discrepancy (one recording cannot tell its weight from an effect)."""
-    bb = float(b @ b)
-    if bb <= 0:
-        return None
-    w = fitting.debias_weight(P, r_raw, b)
-    lo, hi = P.disc_weight_range
-    sizes = np.cumsum([3 * int(rec.seen.sum()) for rec in P.train])[:-1]
-    parts = [(float(rk @ bk), float(bk @ bk)) for rk, bk in zip(np.split(r_raw, sizes), np.split(b, sizes))]
-    parts = [(rb, b2) for rb, b2 in parts if b2 > 0]
-    if len(parts) < 2:
-        return None
-    return sum(min(abs(-rb / b2 - w), 0.5 * (hi - lo)) ** 2 * b2 for rb, b2 in parts) / bb
 
 
 def _own_floor(P, ctx, fit, rss_floor, rss_noise_hi, d_scale):
