@@ -104,6 +104,25 @@ def _require(table: dict, key: str, where: str, path: Path):
     return table[key]
 
 
+def clamp_weakness(vertices, fixed) -> str | None:
+    """Why the clamped vertices `fixed` cannot hold a body by themselves (None when they can, or
+    when nothing is clamped: a free or drive-held body): fewer than 3 of them, or all on one line,
+    leave a rigid rotation free, so a static solve (held poses, `--release`) has no unique
+    equilibrium. Dynamic steps still run (the mass term holds them); drive points may hold it."""
+    fixed = np.unique(np.asarray(fixed, np.int64))
+    if len(fixed) == 0:
+        return None
+    P = np.asarray(vertices, float)[fixed]
+    if len(fixed) < 3:
+        return (f"clamps only {len(fixed)} vertex(es): the body can rotate about them, and static "
+                "solves (held poses, releases) will fail; widen the clamp")
+    sv = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
+    if sv[1] <= 1e-9 * max(sv[0], 1e-300):
+        return (f"clamps {len(fixed)} vertices that all lie on one line: the body can rotate about "
+                "it, and static solves (held poses, releases) will fail; widen the clamp")
+    return None
+
+
 def load_scene(path) -> Scene:
     """Read a `scene.toml` (formats.md). Raises FileNotFoundError for missing files and
     ValueError naming the section and key for malformed content."""
@@ -158,6 +177,11 @@ def load_scene(path) -> Scene:
         raise ValueError(f"{path}: [boundary] needs fixed_box or fixed_vertices")
     else:
         fixed = np.zeros(0, np.int64)
+    weak = clamp_weakness(mesh.vertices, fixed)
+    if weak:
+        import warnings
+
+        warnings.warn(f"{path}: [boundary] {weak}", stacklevel=2)
 
     s = doc["simulation"]
     time_step = float(_require(s, "time_step", "simulation", path))

@@ -174,3 +174,29 @@ def test_surface_mesh_is_tetrahedralised_with_the_scene_bounds(tmp_path):
     assert sc.mesh.rest_volumes.max() <= 2e-7 * (1 + 1e-9)
     assert sc.mesh.rest_volumes.sum() == pytest.approx(0.1 * 0.02 * 0.02, rel=1e-9)
     assert sc.gravity == (0.0, -9.81, 0.0) and sc.damping.alpha_stiffness == 0.0 and len(sc.fixed) >= 4
+
+
+def test_a_clamp_that_cannot_hold_the_body_warns(example_dir):
+    """A clamp of 1-2 vertices, or of vertices on one line, leaves a rigid rotation free: loading
+    the scene says so (static solves would fail later with a CHOLMOD message); the example's
+    clamped end face does not warn."""
+    import warnings
+
+    from matlearn.scene import clamp_weakness
+
+    d, mesh = example_dir
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sc = load_scene(d / "scene.toml")
+    assert len(sc.fixed) >= 3 and clamp_weakness(mesh.vertices, sc.fixed) is None
+    V = np.asarray(mesh.vertices)
+    edge = np.flatnonzero(np.isclose(V[:, 1], V[:, 1].min()) & np.isclose(V[:, 2], V[:, 2].min()))
+    assert len(edge) >= 3
+    assert "one line" in clamp_weakness(V, edge)
+    assert "only 2" in clamp_weakness(V, edge[:2])
+    assert clamp_weakness(V, []) is None  # nothing clamped: a free or drive-held body
+    (d / "fixed.txt").write_text("0\n")
+    (d / "scene.toml").write_text(FORMATS_EXAMPLE.replace(
+        "fixed_box = [[-1.0, -1.0, -1.0], [0.001, 1.0, 1.0]]", 'fixed_vertices = "fixed.txt"'))
+    with pytest.warns(UserWarning, match="clamps only 1 vertex"):
+        load_scene(d / "scene.toml")
