@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from learning_table import BASELINE_LAWS, _git  # noqa: E402
 
 from matlearn import cases, meshes  # noqa: E402
+from matlearn.cases import _release  # noqa: E402  (the learning table's tip-load release)
 from matlearn.learning import LearnOptions, save_model, transfer_score  # noqa: E402
 from matlearn.learning.baseline import fit_parameters  # noqa: E402
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS, RbfParams  # noqa: E402
@@ -38,11 +39,6 @@ from matlearn.scene import load_scene  # noqa: E402
 from matlearn.synthetic import DEFAULT_GRAVITY, Motion, make_case  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results" / "learning_transfer.json"
-
-
-def _release(tip, force, twist=None, duration=0.3):
-    tw = {"box": tip, "torque": list(twist)} if twist is not None else None
-    return Motion("release", "test", duration, load={"box": tip, "force": list(force)}, twist=tw)
 
 
 def _axial(tip, amp, duration=0.3):
@@ -63,10 +59,10 @@ def targets():
     post_top = [[px1 - 0.012, -1, -1], [1, 1, 1]]
     return {
         "dragon": ("stvk_capsule", cap, [[-1, -1, -1], [cx0 + 0.008, 1, 1]],
-                   [_release(cap_tip, [0, 0.5, 0.2]), _release(cap_tip, [0, -0.3, 0.4], twist=[0.003, 0, 0])],
+                   [_release("test", cap_tip, [0, 0.5, 0.2]), _release("test", cap_tip, [0, -0.3, 0.4], twist=[0.003, 0, 0])],
                    "the StVK bar's material on a TetGen capsule (r 14 mm, 108 mm long), clamped at one end"),
         "bar_damping_2": ("damping_bar_thick", bar, [[-1, -1, -1], [1e-4, 1, 1]],
-                          [_release(bar_tip, [0, 0.35, 0.1]), _release(bar_tip, [0, -0.2, 0.4])],
+                          [_release("test", bar_tip, [0, 0.35, 0.1]), _release("test", bar_tip, [0, -0.2, 0.4])],
                           "the strain-dependent damping on a shorter, wider bar (6 x 3 x 2 cells)"),
         "sphere_compression": ("compression_post", post, [[-1, -1, -1], [px0 + 0.012, 1, 1]],
                                [_axial(post_top, 0.008), _axial(post_top, 0.012)],

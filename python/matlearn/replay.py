@@ -253,19 +253,19 @@ def simulate_recording(scene, model, rec: Recording, progress=None, state=None,
 
     if after_chunk is None:
         X, Vel = run(steps, 0)
-        warn_unconverged(integ, "simulate_recording")
-        return sim_t, X, Vel
-    Xs, Vs, s = [], [], 0
-    while s < steps:
-        k = min(max(1, int(chunk or steps)), steps - s)
-        X, Vel = run(k, s)
-        first = 0 if s == 0 else 1  # every call repeats its start frame
-        Xs.append(X[first:])
-        Vs.append(Vel[first:])
-        s += k
-        after_chunk(s, Xs[-1])
+    else:
+        Xs, Vs, s = [], [], 0
+        while s < steps:
+            k = min(max(1, int(chunk or steps)), steps - s)
+            X, Vel = run(k, s)
+            first = 0 if s == 0 else 1  # every call repeats its start frame
+            Xs.append(X[first:])
+            Vs.append(Vel[first:])
+            s += k
+            after_chunk(s, Xs[-1])
+        X, Vel = np.concatenate(Xs), np.concatenate(Vs)
     warn_unconverged(integ, "simulate_recording")
-    return sim_t, np.concatenate(Xs), np.concatenate(Vs)
+    return sim_t, X, Vel
 
 
 def predict_markers(scene, model, rec: Recording, sim=None, embedding: Embedding | None = None,

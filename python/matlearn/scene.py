@@ -12,6 +12,7 @@ try:
     import tomllib
 except ImportError:  # Python < 3.11
     import tomli as tomllib
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -179,8 +180,6 @@ def load_scene(path) -> Scene:
         fixed = np.zeros(0, np.int64)
     weak = clamp_weakness(mesh.vertices, fixed)
     if weak:
-        import warnings
-
         warnings.warn(f"{path}: [boundary] {weak}", stacklevel=2)
 
     s = doc["simulation"]
