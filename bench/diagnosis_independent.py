@@ -474,7 +474,7 @@ def run_case(work: Path, name: str, effects, shape_kind, seed, fresh: bool, time
         return row
     out = case / "diag"
     row["commit"] = code_commit()
-    cmd = [sys.executable, "-m", "matlearn", "diagnose", str(case / "scene.toml"), "--out", str(out)]
+    cmd = [sys.executable, "-m", "matlearn", "diagnose", str(case / "scene.toml"), "--out", str(out), "--force"]
     t1, c1 = time.time(), resource.getrusage(resource.RUSAGE_CHILDREN)
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)

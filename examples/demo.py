@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     banner("3/3 diagnose: reality is stiffer than the datasheet says")
     dscene = diagnosis_case(out / "cases")
     dout = out / "diagnosis"
-    if cli.main(["diagnose", str(dscene), "--out", str(dout)]) != 0:
+    if cli.main(["diagnose", str(dscene), "--out", str(dout), "--force"]) != 0:
         return 1
     diag = json.loads((dout / "diagnosis.json").read_text())
 

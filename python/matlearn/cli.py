@@ -33,7 +33,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"matlearn {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"matlearn {args.command}: interrupted", file=sys.stderr)
+        hint = " (the same command with --resume continues it)" if hasattr(args, "resume") else ""
+        print(f"matlearn {args.command}: interrupted{hint}", file=sys.stderr)
         return 130
 
 

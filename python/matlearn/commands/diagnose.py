@@ -17,6 +17,11 @@ def register(subparsers):
     p.add_argument("--residual", choices=("constrained", "spacetime"), default="constrained",
                    help="source of the control forces mapped in 'where' (spacetime: the learning "
                    "step's space-time optimisation, sharper, ~5x slower)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue a killed diagnosis into the same --out: the simulations it finished "
+                   "(kept in OUT/.diagnose_cache while it runs) are not run again")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite an earlier diagnosis in --out (or start an interrupted one afresh)")
     p.add_argument("--follow-damping", action="store_true",
                    help="experimental: the mesh's discretisation error removed from the data follows "
                    "each candidate's Rayleigh damping (finds strong damping on coarse meshes, also "
@@ -43,15 +48,35 @@ def scene_with_markers(scene_path, out_dir, log=None):
     return save_scene(tracked, Path(out_dir) / "tracked" / "scene.toml")
 
 
+def check_out(out, resume: bool, force: bool) -> None:
+    """Refuse an --out that holds a finished or an interrupted diagnosis unless told what to do
+    with it (nothing a user produced is overwritten silently)."""
+    from pathlib import Path
+
+    from ..diagnosis.simcache import FOLDER
+
+    out = Path(out)
+    if force or resume:
+        return
+    if (out / FOLDER).exists():
+        raise ValueError(f"{out} holds an interrupted diagnosis ({FOLDER}); use --resume to continue it "
+                         "or --force to start afresh")
+    if (out / "diagnosis.json").exists():
+        raise ValueError(f"{out} holds an earlier diagnosis (diagnosis.json); use --force to overwrite it "
+                         "or choose another --out")
+
+
 def _run(args):
     import sys
 
     from ..diagnosis import diagnose
 
     log = lambda *a: print(*a, file=sys.stderr, flush=True)  # noqa: E731
+    check_out(args.out, args.resume, args.force)
     scene = scene_with_markers(args.scene, args.out, log)
     r = diagnose(scene, args.out, seed=args.seed, report=not args.no_report,
-                 residual_source=args.residual, follow_damping=args.follow_damping or None)
+                 residual_source=args.residual, follow_damping=args.follow_damping or None,
+                 resume=args.resume)
     print(f"verdict: {', '.join(r['verdict']) or '[] (within noise and discretisation)'}")
     d, gb = r.get("discretisation") or {}, r["gap_before"]
     if d.get("gap_with_offset"):

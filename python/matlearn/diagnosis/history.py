@@ -104,7 +104,15 @@ def _simulate_split(problem, m1, m2, rec):
 
 def _simulate_segments(problem, models, bounds, rec):
     """Markers at rec.times of one recording simulated with models[i] over the simulation steps
-    bounds[i] .. bounds[i + 1] (the state carried across), from the first model's initial state."""
+    bounds[i] .. bounds[i + 1] (the state carried across), from the first model's initial state
+    (kept in the problem's store: Problem.remembered)."""
+    parts = ("segments", problem.fast_newton, tuple(problem.fingerprint(m) for m in models),
+             tuple(int(b) for b in bounds))
+    runs = sum(1 for a, b in zip(bounds[:-1], bounds[1:]) if b > a)
+    return problem.remembered(rec, parts, lambda: (_segments(problem, models, bounds, rec),), runs)[0]
+
+
+def _segments(problem, models, bounds, rec):
     scene = problem.scene
     emb = problem.embedding(rec)
     sim_t = replay.simulation_times(scene, rec)

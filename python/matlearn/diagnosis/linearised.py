@@ -78,6 +78,12 @@ def _held_pose_tangent(problem, model, rec, directions, refine: int = 3) -> np.n
 def recording_tangent(problem, model, rec, directions):
     """(predicted markers (T, K, 3), their derivative (T, K, 3, k)) of one recording (no drive
     points) for log-stiffness directions (#T, k), through the scene's LinearisedReplay."""
+    directions = np.ascontiguousarray(directions, float)
+    return problem.remembered(rec, ("tangent", problem.fingerprint(model), directions),
+                              lambda: _recording_tangent(problem, model, rec, directions))
+
+
+def _recording_tangent(problem, model, rec, directions):
     from .fitting import rest_offset
 
     scene = problem.scene

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import contract, fitting, history, ranking, region, where
+from . import contract, fitting, history, ranking, region, simcache, where
 from .discretisation import discretisation
 from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContext, describe
 from .problem import Problem
@@ -72,7 +72,7 @@ def dominant_omega(problem) -> float:
 
 def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 16,
              refine_top: int = 3, report: bool = True, residual_source: str = "constrained",
-             follow_damping: bool | None = None) -> dict:
+             follow_damping: bool | None = None, resume: bool = False) -> dict:
     """Diagnose the scene's nominal model against its train recordings; write
     out_dir/diagnosis.json (formats.md), report.html and residual .vtu files; return the dict.
 
@@ -82,7 +82,11 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     stiffness sensitivities locate a heterogeneity; refine_top: families refined by simulation.
     follow_damping: the discretisation discrepancy removed follows each candidate's Rayleigh
     damping, with each fit's own floor (discretisation._damping_columns; default
-    discretisation.DAMPING_FOLLOWS, off: an experiment of session 16, docs/results.md)."""
+    discretisation.DAMPING_FOLLOWS, off: an experiment of session 16, docs/results.md).
+    resume: continue a killed diagnosis of the same scene into the same out_dir: every simulation
+    it finished is taken from out_dir/.diagnose_cache (simcache.py; the folder holds the run's
+    simulated markers while it runs and is removed once diagnosis.json is written; without
+    resume an earlier run's folder is cleared first)."""
     say = _printer(progress)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -90,6 +94,10 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # a recording that does not say it starts at rest starts in motion only where its own data
     # show it (problem.start_in_motion), decided once here for every recording
     P = Problem(scene_path, estimate_velocity="auto" if START_DECISION else False)
+    P.store = simcache.SimulationStore(out / simcache.FOLDER, resume=resume)
+    if resume:
+        say(f"resuming: {P.store.resumed} simulation(s) of the interrupted run found in {P.store.folder}"
+            if P.store.resumed else f"resume: no interrupted run in {out} (no {simcache.FOLDER}), starting afresh")
     scene = P.scene
     nominal = scene.model()
     say(f"scene: {scene.mesh.num_tets} tets, {len(P.train)} train / {len(P.test)} test recordings")
@@ -451,7 +459,9 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         from . import report as rep
 
         rep.write_report(out, P, ctx, result, shares, field, fits, selected, patch_theta, labels)
-    say(f"wrote {out / 'diagnosis.json'} ({P.simulations} simulations)")
+    say(f"wrote {out / 'diagnosis.json'} ({P.simulations} simulations"
+        + (f", {P.store.hits} of them from the interrupted run)" if resume else ")"))
+    P.store.remove()
     return result
 
 

@@ -55,6 +55,7 @@ class Problem:
         self._probe = {}  # id(scene) -> (scene, x, v): the fingerprint state
         self._memo = {}  # (id(scene), id(rec), newton, fingerprint) -> (rec, scene, markers)
         self.memo_hits = 0
+        self.store = None  # simcache.SimulationStore: predictions kept on disk (a killed run resumes)
         # the mesh's discretisation discrepancy removed from train residuals (fitting.debias)
         self.disc_bias = {}
         self.disc_bias_damping = {}  # its change with the damping (fitting.discrepancy)
@@ -101,15 +102,25 @@ class Problem:
     def predict(self, model, rec, fast: bool = True, full: bool = False):
         """Predicted markers (T, K, 3) at rec.times; with full=True also (sim_t, X, V).
         Predictions are memoised by (scene, recording, solver, model fingerprint): fitting
-        re-evaluates the same model (baseline, restarts, scans) and gets the stored markers."""
+        re-evaluates the same model (baseline, restarts, scans) and gets the stored markers; with
+        a `store` (simcache.SimulationStore) they are also kept on disk, and a result found there
+        (written by the killed run this one resumes) is taken instead of simulating."""
         newton = self.fast_newton if fast else 8
-        memo_key = None
+        memo_key = store_key = None
         if not full:
-            memo_key = (id(self.scene), id(rec), newton, self.fingerprint(model))
+            fp = self.fingerprint(model)
+            memo_key = (id(self.scene), id(rec), newton, fp)
             hit = self._memo.get(memo_key)
             if hit is not None and hit[0] is rec and hit[1] is self.scene:  # ids not reused
                 self.memo_hits += 1
                 return hit[2].copy()
+            if self.store is not None:  # a result of the run this one resumes counts as simulated
+                store_key = self.store.key(self.scene, rec, "predict", newton, self.estimate_velocity, fp)
+                got = self.store.get(store_key)
+                if got is not None:
+                    self.simulations += 1
+                    self._memo[memo_key] = (rec, self.scene, got[0].copy())
+                    return got[0]
         state = replay.initial_state(self.scene, model, rec, self.embedding(rec))
         if self.estimate_velocity is True and not rec.at_rest_initially and not rec.has_drive:
             state = (state[0], initial_velocity(self.scene, model, rec, self.embedding(rec), state[0]))
@@ -121,7 +132,25 @@ class Problem:
         P, sim = self.simulate_markers(model, rec, state, newton)
         if memo_key is not None:
             self._memo[memo_key] = (rec, self.scene, P.copy())
+        if store_key is not None:
+            self.store.put(store_key, P)
         return (P, sim) if full else P
+
+    def remembered(self, rec, parts: tuple, compute, simulations: int = 1):
+        """compute() (a tuple of arrays: the result of simulating `rec`), or the same tuple from
+        the `store` when the run this one resumes computed it; `parts` must hold everything the
+        result depends on besides the code, the scene and the recording (model fingerprints,
+        solver, states). A stored result counts as `simulations` simulations."""
+        if self.store is None:
+            return compute()
+        key = self.store.key(self.scene, rec, *parts)
+        got = self.store.get(key)
+        if got is not None:
+            self.simulations += simulations
+            return got
+        out = compute()
+        self.store.put(key, *out)
+        return out
 
     def simulate_markers(self, model, rec, state, newton: int):
         """(markers (T, K, 3) at rec.times, (sim_t, X, V)) of `rec` simulated from `state` with
@@ -376,7 +405,9 @@ def start_in_motion(problem, rec: Recording, frames: int = 7, scales=START_SCALE
         for s in scales:
             model = model_at(s)
             try:
-                pred = problem.simulate_markers(model, rec, (x0, v), problem.fast_newton)[0]
+                pred = problem.remembered(
+                    rec, ("start", problem.fast_newton, problem.fingerprint(model), x0, v),
+                    lambda: (problem.simulate_markers(model, rec, (x0, v), problem.fast_newton)[0],))[0]
             except RuntimeError:
                 continue
             r = ((pred - rec.markers)[seen] / size).ravel()
