@@ -40,7 +40,7 @@ def main(out_dir="demo_out") -> Path:
     argv = ["simulate", str(scene_path), "--load", "0", "2.0", "0",
             "--load-box", *map(str, tip_box), "--release", "--duration", "1.0",
             "--all-surface", "--frame-rate", "200", "--out", str(rec_path),
-            "--vtu", str(out / "vtu")]
+            "--vtu", str(out / "vtu"), "--force"]
     if cli.main(argv) != 0:
         raise SystemExit("demo: simulation failed")
 

@@ -74,9 +74,26 @@ def test_default_markers_come_from_the_scene_recording(scene_path, tmp_path):
     rec = load_recording(out)
     np.testing.assert_allclose(rec.marker_rest, rest)
     np.testing.assert_allclose(rec.times[-1], 0.01)  # duration defaults to the recording's span
-    # --replay 0 replays that recording (from its estimated held pose) at its times.
-    assert cli.main(["simulate", str(path), "--replay", "0", "--out", str(out), "--quiet"]) == 0
+    # --replay 0 replays that recording (from its estimated held pose) at its times; an existing
+    # --out is replaced only when asked (--force), never silently
+    assert cli.main(["simulate", str(path), "--replay", "0", "--out", str(out), "--quiet"]) == 2
+    np.testing.assert_allclose(load_recording(out).times[-1], 0.01)
+    assert cli.main(["simulate", str(path), "--replay", "0", "--out", str(out), "--quiet", "--force"]) == 0
     np.testing.assert_allclose(load_recording(out).times, [0.0, 0.01])
+
+
+def test_an_existing_recording_is_never_overwritten_silently(scene_path, tmp_path, capsys):
+    path, scene = scene_path
+    rest = np.array([[0.2, 0.02, 0.02], [0.15, -0.02, 0.0]])
+    mine = tmp_path / "train_0.npz"
+    save_recording(Recording([0.0, 0.01], rest, np.stack([rest, rest])), mine)
+    scene.recordings = [(mine, "train")]
+    save_scene(scene, path)
+    before = mine.read_bytes()
+    assert cli.main(["simulate", str(path), "--duration", "0.02", "--out", str(mine), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "one of the scene's recordings" in err and "--force" in err
+    assert mine.read_bytes() == before
 
 
 @pytest.mark.parametrize(

@@ -184,6 +184,14 @@ def test_make_scene_from_scans(tmp_path):
                    "2e-6", "--no-track", "--quiet"])
     assert rc == 0
     assert [r for _, r in load_scene(tmp_path / "cli" / "scene.toml").recordings] == ["train", "test"]
+    # a second ingest into the same folder would replace that scene: refused without --force
+    again = ["ingest", str(tmp_path / "bar.obj"), "--clouds", *map(str, dirs), "--fixed-box",
+             "-1", "-1", "-1", "0.001", "1", "1", "--out", str(tmp_path / "cli"), "--max-volume",
+             "2e-6", "--no-track", "--quiet", "--roles", "train", "train"]
+    assert cli.main(again) == 2
+    assert [r for _, r in load_scene(tmp_path / "cli" / "scene.toml").recordings] == ["train", "test"]
+    assert cli.main(again + ["--force"]) == 0
+    assert [r for _, r in load_scene(tmp_path / "cli" / "scene.toml").recordings] == ["train", "train"]
 
 
 def test_refresh_markers_moves_towards_clouds(bar_case):

@@ -14,6 +14,11 @@ def run(args) -> int:
     from ..clouds.ingest import make_scene_from_scans
     from ..materials import Damping, Material
 
+    from pathlib import Path
+
+    if (Path(args.out) / "scene.toml").exists() and not args.force:
+        raise ValueError(f"{args.out} already holds a scene (scene.toml); use --force to overwrite it "
+                         "or choose another --out")
     box = [args.fixed_box[:3], args.fixed_box[3:]]
     path = make_scene_from_scans(
         args.surface, args.clouds, box, args.out,
@@ -47,5 +52,6 @@ def register(subparsers) -> None:
     p.add_argument("--time-step", type=float, default=1e-3, help="s")
     p.add_argument("--max-volume", type=float, default=None, help="TetGen volume bound (m^3)")
     p.add_argument("--no-track", action="store_true", help="only write the cloud scene")
+    p.add_argument("--force", action="store_true", help="overwrite a scene already in --out")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)

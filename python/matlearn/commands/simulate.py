@@ -82,6 +82,11 @@ def _marker_points(scene, args) -> np.ndarray:
 
 def run(args) -> int:
     scene = load_scene(args.scene)
+    out = Path(args.out)
+    if out.exists() and not args.force:  # before simulating: nothing a user has is replaced silently
+        mine = any(out.resolve() == Path(p).resolve() for p in scene.recording_paths())
+        raise ValueError(f"--out {out} exists" + (" (it is one of the scene's recordings)" if mine else "")
+                         + "; use --force to overwrite it")
     model = load_correction(args.model, scene) if args.model else scene.model()
     bar = ProgressBar("simulate", enabled=not args.quiet)
     points = _marker_points(scene, args)  # before simulating: bad marker input fails fast
@@ -148,5 +153,6 @@ def register(subparsers) -> None:
     g.add_argument("--all-surface", action="store_true", help="a marker at every surface vertex")
     p.add_argument("--frame-rate", type=float, help="output frames per second (default: every step)")
     p.add_argument("--vtu", metavar="DIR", help="also write a ParaView time series (.pvd + .vtu)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
