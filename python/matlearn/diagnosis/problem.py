@@ -106,21 +106,22 @@ class Problem:
         a `store` (simcache.SimulationStore) they are also kept on disk, and a result found there
         (written by the killed run this one resumes) is taken instead of simulating."""
         newton = self.fast_newton if fast else 8
-        memo_key = store_key = None
-        if not full:
-            fp = self.fingerprint(model)
-            memo_key = (id(self.scene), id(rec), newton, fp)
-            hit = self._memo.get(memo_key)
-            if hit is not None and hit[0] is rec and hit[1] is self.scene:  # ids not reused
-                self.memo_hits += 1
-                return hit[2].copy()
-            if self.store is not None:  # a result of the run this one resumes counts as simulated
-                store_key = self.store.key(self.scene, rec, "predict", newton, self.estimate_velocity, fp)
-                got = self.store.get(store_key)
-                if got is not None:
-                    self.simulations += 1
-                    self._memo[memo_key] = (rec, self.scene, got[0].copy())
-                    return got[0]
+        if full:
+            return self._simulate_prediction(model, rec, newton)
+        fp = self.fingerprint(model)
+        memo_key = (id(self.scene), id(rec), newton, fp)
+        hit = self._memo.get(memo_key)
+        if hit is not None and hit[0] is rec and hit[1] is self.scene:  # ids not reused
+            self.memo_hits += 1
+            return hit[2].copy()
+        P = self.remembered(rec, ("predict", newton, self.estimate_velocity, fp),
+                            lambda: (self._simulate_prediction(model, rec, newton)[0],))[0]
+        self._memo[memo_key] = (rec, self.scene, P.copy())
+        return P
+
+    def _simulate_prediction(self, model, rec, newton: int):
+        """(markers, (sim_t, X, V)) of `rec` from its start state (held pose; the start velocity
+        as decided by `estimate_velocity`)."""
         state = replay.initial_state(self.scene, model, rec, self.embedding(rec))
         if self.estimate_velocity is True and not rec.at_rest_initially and not rec.has_drive:
             state = (state[0], initial_velocity(self.scene, model, rec, self.embedding(rec), state[0]))
@@ -129,12 +130,7 @@ class Problem:
             if mv is not None:
                 state = (state[0], initial_velocity(self.scene, model, rec, self.embedding(rec), state[0],
                                                     marker_v=mv))
-        P, sim = self.simulate_markers(model, rec, state, newton)
-        if memo_key is not None:
-            self._memo[memo_key] = (rec, self.scene, P.copy())
-        if store_key is not None:
-            self.store.put(store_key, P)
-        return (P, sim) if full else P
+        return self.simulate_markers(model, rec, state, newton)
 
     def remembered(self, rec, parts: tuple, compute, simulations: int = 1):
         """compute() (a tuple of arrays: the result of simulating `rec`), or the same tuple from

@@ -4,10 +4,10 @@ resumes (`diagnose(..., resume=True)`, `matlearn diagnose --resume`).
 A diagnosis is a deterministic sequence of a few hundred simulations (sensitivities, fits,
 held-out gaps); nearly all of them pass through `Problem.predict`, which already memoises its
 markers in memory by (scene, recording, solver, model fingerprint). `SimulationStore` keeps the
-same results in a folder, each under a digest of everything the simulation depends on:
+same results in a folder whose manifest names the code that wrote it (a digest of every source
+file of the matlearn package and of the compiled core: a rebuilt or edited matlearn discards an
+earlier one's folder), each result under a digest of everything else the simulation depends on:
 
-* the code: every source file of the matlearn package and the compiled core (a rebuilt or edited
-  matlearn never reuses an earlier one's results);
 * the scene's mesh, clamp, time step and gravity (the once-refined scene of the discretisation
   step has its own);
 * the recording's times, markers, marker rest positions, drive points and at-rest flag;
@@ -82,6 +82,14 @@ def recording_digest(rec) -> str:
                    rec.drive_rest, rec.drive)
 
 
+def _code_of(manifest: Path) -> str | None:
+    """The code digest a store's manifest names (None: no readable manifest)."""
+    try:
+        return json.loads(manifest.read_text()).get("code")
+    except (OSError, ValueError):
+        return None
+
+
 class SimulationStore:
     """Simulation results (tuples of arrays) by key in `folder` (one .npz file each, written
     atomically: a kill during a write leaves no partial entry)."""
@@ -92,18 +100,10 @@ class SimulationStore:
         # computed twice within one run is recomputed, round-off and all), and only writes
         self.reading = bool(resume)
         self.hits = 0
-        self.writes = 0
         self._digests = {}  # id(obj) -> (obj, digest): scenes and recordings, hashed once
         manifest = self.folder / "manifest.json"
-        if not resume and self.folder.exists():
-            shutil.rmtree(self.folder)
-        if resume and manifest.exists():
-            try:
-                stored = json.loads(manifest.read_text()).get("code")
-            except (OSError, ValueError):
-                stored = None
-            if stored != code_digest():  # another matlearn wrote it: its results are not ours
-                shutil.rmtree(self.folder)
+        if self.folder.exists() and not (resume and _code_of(manifest) == code_digest()):
+            shutil.rmtree(self.folder)  # a fresh run, or results of other (or unknown) code
         # (a kill during a write leaves only a hidden .tmp file, never counted or read)
         self.resumed = sum(1 for p in self.folder.glob("*.npz") if not p.name.startswith(".")) \
             if self.folder.exists() else 0
@@ -119,8 +119,9 @@ class SimulationStore:
 
     def key(self, scene, rec, *parts) -> str:
         """The key of a simulation of `rec` on `scene`; `parts`: everything else it depends on
-        (solver, start mode, model fingerprints, arrays)."""
-        return _digest(code_digest(), self._of(scene, scene_digest), self._of(rec, recording_digest), *parts)
+        (solver, start mode, model fingerprints, arrays). The code is not part of it: a folder
+        written by other code is discarded when the store opens (manifest.json)."""
+        return _digest(self._of(scene, scene_digest), self._of(rec, recording_digest), *parts)
 
     def get(self, key: str):
         """The arrays stored under `key` (a tuple, in the order put), or None."""
@@ -139,7 +140,6 @@ class SimulationStore:
         tmp = self.folder / f".{key}.{os.getpid()}.tmp.npz"
         np.savez(tmp, *[np.asarray(a) for a in arrays])
         os.replace(tmp, self.folder / f"{key}.npz")
-        self.writes += 1
 
     def remove(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)
