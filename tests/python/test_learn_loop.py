@@ -61,10 +61,11 @@ def test_an_overshooting_update_is_shortened_and_errors_never_increase(case, tmp
     assert res["final"]["train"]["max_error_pct"] < 0.8 * res["nominal"]["train"]["max_error_pct"]
 
 
-def test_spacetime_with_five_markers_does_not_stall(tmp_path):
+@pytest.mark.parametrize("solver", ["cgls", "pcgls"])
+def test_spacetime_with_five_markers_does_not_stall(tmp_path, solver):
     """bench/visibility.py's markers_6 condition, shortened: 5 markers on a 10x2x2 bar. The
     factorised (pcgls) step stalls at ~2 % cost reduction; with the CGLS continuation the cost
-    drops by more than 10x."""
+    drops by more than 10x, and so does CGLS from the start (the default)."""
     mesh = meshes.bar(0.2, 0.04, 0.04, cells=(10, 2, 2))
     tip = [[0.18, -1, -1], [1, 1, 1]]
     path = make_case(tmp_path, "bar", mesh, Material("designed", 1e6, 0.4, 1000.0, edits=[(-1.5e4, 0.97, 0.03)]),
@@ -83,10 +84,50 @@ def test_spacetime_with_five_markers_does_not_stall(tmp_path):
     cons, _, _ = constrained_vertices(sc, sub)
     phi = pod_basis([sim[1], X0], np.asarray(sc.mesh.vertices), cons, 20)
     setup = build_problem(sc, model, sub, phi, 1.0, emb)
-    out = solve_spacetime(setup, X0, iterations=6)
+    out = solve_spacetime(setup, X0, iterations=6, solver=solver)
     cost = out["report"]["cost"]
     print("cost", cost, "steps", out["report"]["step_length"], out["report"].get("fallback"))
     assert cost[-1] < 0.1 * cost[0], cost
+    assert (out["report"].get("fallback") == "cgls") == (solver == "pcgls")
+
+
+class _ScriptedProblem:
+    """Stands in for the C++ SpaceTimeProblem: each solve returns the next scripted report."""
+
+    def __init__(self, steps_by_call):
+        self.steps_by_call = list(steps_by_call)
+        self.solvers = []
+
+    def solve(self, Z, iterations, cg_iterations, cg_tolerance, tolerance, solver, progress, every):
+        self.solvers.append(solver)
+        steps = self.steps_by_call.pop(0)
+        return {"Z": Z, "step_length": steps, "cg_iterations": [1] * len(steps),
+                "cost": [1.0] * (len(steps) + 1), "physics_cost": [1.0] * (len(steps) + 1)}
+
+    def positions(self, Z):
+        return np.zeros((3, 1, 3))
+
+    def control_forces(self, Z):
+        return np.zeros((1, 1, 3))
+
+
+@pytest.mark.parametrize("steps, continued", [
+    ([1.0, 1.0, 1.0, 1.0], False),       # used its whole budget with full steps
+    ([1.0, 1.0], False),                 # converged with a full step
+    ([0.5, 0.25], True),                 # stopped early after a shortened step: a stall
+    ([1.0, 0.125, 1.0, 1.0], True),      # a step below 1/4 anywhere
+    ([1.0, 0.0], True),                  # no descent at all
+])
+def test_factorised_solve_continues_with_cgls_when_it_stalls(steps, continued):
+    """The pcgls stall test: session 22 found steps (1/2, 1/4) stopping early at a cost 1.8x the
+    one CGLS then reached; a stop after any shortened step now counts as a stall."""
+    from matlearn.learning.spacetime import SpaceTimeSetup
+
+    prob = _ScriptedProblem([steps, [1.0]])
+    setup = SpaceTimeSetup(prob, np.zeros((3, 1)), np.zeros((3, 1, 3)), np.array([0.0, 0.1, 0.2]), [])
+    out = solve_spacetime(setup, np.zeros((3, 1, 3)), iterations=4, solver="pcgls")
+    assert prob.solvers == (["pcgls", "cgls"] if continued else ["pcgls"])
+    assert (out["report"].get("fallback") == "cgls") == continued
 
 
 @pytest.mark.parametrize("search, expect_fits, expect_ridge", [("all", 3, 1e-2), ("first", 2, 1e-4)])
