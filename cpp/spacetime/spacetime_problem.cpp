@@ -2,6 +2,7 @@
 
 #include <Eigen/SparseCholesky>
 #include <cmath>
+#include <limits>
 
 namespace matlearn::spacetime {
 
@@ -386,7 +387,7 @@ VecX SpaceTimeProblem::solve_linear(const SolveOptions& opt, int* iterations) co
     if (iterations) *iterations = k;
     return x;
   }
-  if (opt.solver != "cgls") throw InvalidInput("solver must be 'pcgls', 'cgls' or 'direct'");
+  if (opt.solver != "cgls") throw InvalidInput("solver must be 'pcgls', 'cgls', 'direct' or 'lm'");
   // CGLS on min |J D y + C| with Jacobi column scaling D, dz = D y.
   const VecX D = column_scale();
   VecX y = VecX::Zero(num_unknowns());
@@ -421,10 +422,91 @@ namespace {
 constexpr double kRoundoffCost = 1e-20;
 }  // namespace
 
+SolveReport SpaceTimeProblem::solve_lm(MatXr& Z, const SolveOptions& opt, const ProgressFn& progress) {
+  // Levenberg-Marquardt with Marquardt's scaling: (J^T J + mu diag(J^T J)) dz = -J^T C, the
+  // damped normal equations factorised at every trial; mu adapted from the gain ratio
+  // (Nielsen's rule). Damping bounds the step in the directions sparse observations barely
+  // determine, where an undamped factorised step is dominated by round-off.
+  SolveReport rep;
+  precond_.reset();
+  const int np = num_physics_rows();
+  auto record = [&](const VecX& C) {
+    rep.cost.push_back(0.5 * C.squaredNorm());
+    rep.physics_cost.push_back(0.5 * C.head(np).squaredNorm());
+  };
+  linearize(Z);
+  record(C_);
+  double mu = opt.lm_damping, nu = 2.0;
+  for (int it = 0; it < opt.max_iterations; ++it) {
+    if (it > 0) linearize_jacobian(Z);
+    const Eigen::SparseMatrix<double> J = assemble_jacobian();
+    const Eigen::SparseMatrix<double> JtJ = J.transpose() * J;
+    const VecX g = J.transpose() * C_;
+    VecX d = JtJ.diagonal();
+    const double dfloor = 1e-12 * std::max(d.maxCoeff(), 1e-300);
+    for (int i = 0; i < d.size(); ++i) d[i] = std::max(d[i], dfloor);
+    const double cost = 0.5 * C_.squaredNorm();
+    bool accepted = false;
+    int trials = 0;
+    VecX Ct;
+    MatXr Zt;
+    for (; trials < 16 && !accepted; ++trials) {
+      Eigen::SparseMatrix<double> A = JtJ;
+      for (int i = 0; i < A.rows(); ++i) A.coeffRef(i, i) += mu * d[i];
+      Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt(A);
+      if (ldlt.info() != Eigen::Success) {
+        mu *= nu;
+        nu *= 2;
+        continue;
+      }
+      const VecX dz = ldlt.solve(-g);
+      const double predicted = -g.dot(dz) - 0.5 * (J * dz).squaredNorm();
+      Zt = Z + Eigen::Map<const MatXr>(dz.data(), frames_, r_);
+      bool ok = true;
+      try {
+        Ct = residual(Zt);
+      } catch (const NumericalError&) {
+        ok = false;
+      }
+      const double new_cost = ok ? 0.5 * Ct.squaredNorm() : std::numeric_limits<double>::infinity();
+      if (ok && new_cost < cost && predicted > 0) {
+        accepted = true;
+        const double rho = (cost - new_cost) / predicted;
+        mu *= std::max(1.0 / 3.0, 1.0 - std::pow(2.0 * rho - 1.0, 3));
+        nu = 2.0;
+      } else {
+        mu *= nu;
+        nu *= 2;
+      }
+    }
+    rep.cg_iterations.push_back(trials);
+    if (!accepted) {
+      rep.step_length.push_back(0.0);
+      break;
+    }
+    Z = Zt;
+    C_ = Ct;
+    rep.step_length.push_back(1.0);
+    record(Ct);
+    if (progress) progress(it + 1, opt.max_iterations);
+    if (cost - 0.5 * Ct.squaredNorm() < opt.tolerance * cost) break;
+    if (0.5 * Ct.squaredNorm() <= kRoundoffCost * rep.cost.front()) break;
+  }
+  linearized_ = false;
+  precond_.reset();
+  return rep;
+}
+
 SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const ProgressFn& progress) {
   if (Z.rows() != frames_ || Z.cols() != r_)
     throw InvalidInput("Z: expected shape (" + std::to_string(frames_) + ", " +
                        std::to_string(r_) + ")");
+  if (opt.solver == "lm") {
+    if (!(opt.lm_damping > 0)) throw InvalidInput("lm_damping must be > 0");
+    if (opt.jacobian_every != 1)
+      throw InvalidInput("solver 'lm' re-evaluates the Jacobian at every step: jacobian_every must be 1");
+    return solve_lm(Z, opt, progress);
+  }
   SolveReport rep;
   precond_.reset();
   const int np = num_physics_rows();

@@ -35,9 +35,13 @@ struct SolveOptions {
   /// "pcgls": matrix-free CGLS (on J p, J^T q) preconditioned by a factorisation of J^T J frozen
   /// at the first Gauss-Newton step of a solve (refreshed when CG needs > refresh_iterations);
   /// "cgls": matrix-free CGLS with Jacobi column scaling only;
-  /// "direct": factorise the block-banded normal equations J^T J at every step.
+  /// "direct": factorise the block-banded normal equations J^T J at every step;
+  /// "lm": Levenberg-Marquardt (solve_lm; what matlearn.learning uses).
   std::string solver = "pcgls";
   int refresh_iterations = 30;
+  /// "lm": Levenberg-Marquardt on the factorised damped normal equations, starting damping
+  /// (relative to diag(J^T J)).
+  double lm_damping = 1e-3;
   /// Gauss-Newton steps per evaluation of the Jacobian blocks (1: every step, exact
   /// Gauss-Newton on the nominal tangent). k > 1 re-evaluates them at every k-th step and after
   /// a step the line search had to shorten, reusing them in between (a chord Gauss-Newton: the
@@ -103,6 +107,10 @@ class SpaceTimeProblem {
   VecX solve_linear(const SolveOptions& opt, int* iterations) const;
   /// Gauss-Newton with backtracking line search from Z (updated in place).
   SolveReport solve(MatXr& Z, const SolveOptions& opt, const ProgressFn& progress = {});
+  /// Levenberg-Marquardt from Z (updated in place): (J^T J + mu diag(J^T J)) dz = -J^T C
+  /// factorised at every trial, mu from opt.lm_damping adapted by the gain ratio (Nielsen).
+  /// The report's cg_iterations are the trials per step, step_length 1 (accepted) or 0.
+  SolveReport solve_lm(MatXr& Z, const SolveOptions& opt, const ProgressFn& progress = {});
   /// Control forces fc_j for frames j = 2..N, ((frames-2)*#V x 3), N; zero on constrained
   /// vertices. fc_j = M (x_{j-2} - 2 x_{j-1} + x_j)/h^2 - f(x_j, v_j) - fext_j.
   MatX3 control_forces(const MatXr& Z) const;

@@ -82,14 +82,15 @@ def test_linear_step_agrees_with_dense_lstsq():
         np.testing.assert_allclose(dz, ref, rtol=0, atol=1e-6 * np.abs(ref).max(), err_msg=solver)
 
 
+@pytest.mark.parametrize("solver", ["lm", "pcgls"])
 @pytest.mark.parametrize("lam", [0.01, 1.0, 1e4])
-def test_recovers_known_trajectory_when_model_exact(lam):
+def test_recovers_known_trajectory_when_model_exact(lam, solver):
     sc = _scene()
     model = sc.model()
     X, _, rec = _truth(sc, model, steps=40)
     setup = build_problem(sc, model, rec, _full_basis(sc), lam)
     start = np.repeat(np.asarray(sc.mesh.vertices)[None], len(X), axis=0)  # rest: far from truth
-    out = solve_spacetime(setup, start, iterations=15, tolerance=1e-12)
+    out = solve_spacetime(setup, start, iterations=15, tolerance=1e-12, solver=solver)
     size = meshes.object_size(sc.mesh)
     assert np.abs(out["X"] - X).max() < 1e-6 * size
     # Control forces ~ 0: tiny against the weight of a vertex.

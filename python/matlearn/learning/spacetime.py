@@ -98,20 +98,28 @@ def build_problem(scene, model, rec, phi, lam: float, embedding=None,
 
 
 def solve_spacetime(setup: SpaceTimeSetup, X0, iterations: int = 8, cg_iterations: int = 400,
-                    cg_tolerance: float = 1e-8, tolerance: float = 2e-3, solver: str = "cgls",
+                    cg_tolerance: float = 1e-8, tolerance: float = 2e-3, solver: str = "lm",
                     progress=None, jacobian_every: int = 1) -> dict:
     """Gauss-Newton from the trajectory X0 (frames, n, 3). Returns dict(Z, X (frames, n, 3),
     V (frames, n, 3), control_forces (frames-2, n, 3) for frames 2..N, report).
-    solver: "cgls" (default; Jacobi-scaled CGLS on J itself, matrix-free), "pcgls" (CG on the
-    normal equations preconditioned by their CHOLMOD factorisation) or "direct". CGLS is the
-    default because the normal equations square J's condition number, which sparse markers make
-    large: measured on the StVK bar of bench/learning_table.py (6 % markers), the factorised
-    steps stopped the space-time cost ~4x higher (0.0186 vs 0.0043 at a comparable iteration),
-    and round-off in them (numpy's BLAS thread count) decided which of two learning paths the
-    run took (0.16 / 0.15 % or 0.13 / 0.27 % held-out); with CGLS both thread counts take the
-    same decisions and end at 0.11 / 0.16 %.
+    solver: "lm" (default: Levenberg-Marquardt, the damped normal equations (J^T J + mu
+    diag(J^T J)) dz = -J^T C factorised at every trial, mu adapted from the gain ratio), "pcgls"
+    (CG on the normal equations preconditioned by a frozen factorisation; continued with CGLS
+    when it stalls), "cgls" (Jacobi-scaled CGLS on J, matrix-free) or "direct". Why LM (session
+    22, docs/results.md "Session 22"): with sparse markers J is ill-conditioned and the undamped
+    factorised steps are dominated by round-off in the directions the markers barely determine:
+    on the StVK bar of bench/learning_table.py (6 % markers) numpy's BLAS thread count decided
+    which of two learning paths pcgls took (held-out 0.16 / 0.15 or 0.13 / 0.27 %); with LM one
+    and two threads give the same run (0.13 / 0.32 %). CGLS, capped at cg_iterations, is an
+    unconverged inner solve (it fails the exact-model recovery at lambda 0.01 that LM and pcgls
+    pass; 6k-tet bar of bench/learning_scale.py: train 0.155 % after 4 iterations vs 0.100 % LM,
+    0.041 % pcgls). With "lm" the report's cg_iterations counts the damping trials of each step
+    and step_length is 1 for an accepted step.
     jacobian_every k > 1: the Jacobian blocks are re-evaluated only at every k-th step and after
-    a shortened step (chord Gauss-Newton; the residual stays exact)."""
+    a shortened step (chord Gauss-Newton; the residual stays exact); a line-search variant, so
+    with k > 1 the default solver is pcgls."""
+    if solver == "lm" and jacobian_every > 1:
+        solver = "pcgls"
     Z0 = np.ascontiguousarray(setup.project(X0))
     rep = setup.problem.solve(Z0, iterations, cg_iterations, cg_tolerance, tolerance, solver, progress,
                               jacobian_every)
