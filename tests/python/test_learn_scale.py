@@ -99,12 +99,19 @@ def test_chord_gauss_newton_reuses_the_jacobian_and_recovers_the_trajectory():
     out = {}
     for k in (1, 3):
         setup = build_problem(sc, model, rec, phi, 1.0)
-        out[k] = solve_spacetime(setup, start, iterations=10, tolerance=1e-6, jacobian_every=k)
+        out[k] = solve_spacetime(setup, start, iterations=10, tolerance=1e-6, jacobian_every=k, solver="pcgls")
         assert np.abs(out[k]["X"] - X).max() < 1e-6 * size, k
     # Chord steps solve with the exact preconditioner of the blocks they reuse (refactorised with
     # them): one CG iteration each; exact steps keep the first step's preconditioner and need more.
     assert all(c == 1 for c in out[3]["report"]["cg_iterations"]), out[3]["report"]["cg_iterations"]
     assert max(out[1]["report"]["cg_iterations"][1:]) > 1
+    # Levenberg-Marquardt re-evaluates the Jacobian at every step: the core refuses chord steps,
+    # and solve_spacetime's default turns to the line-search solver for them.
+    Z0 = np.ascontiguousarray(setup.project(start))
+    with pytest.raises(ValueError, match="jacobian_every"):
+        setup.problem.solve(Z0, 3, 400, 1e-8, 1e-6, "lm", None, 3)
+    chord = solve_spacetime(setup, start, iterations=10, tolerance=1e-6, jacobian_every=3)
+    assert chord["report"]["cg_iterations"] == out[3]["report"]["cg_iterations"]
 
 
 def test_randomized_pod_spans_the_full_svd_basis(monkeypatch):
