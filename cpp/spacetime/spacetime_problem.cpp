@@ -420,6 +420,24 @@ VecX SpaceTimeProblem::solve_linear(const SolveOptions& opt, int* iterations) co
 namespace {
 // A cost this far below the initial one is round-off: the residual is ~1e-10 of where it started.
 constexpr double kRoundoffCost = 1e-20;
+
+void record_cost(SolveReport& rep, const VecX& C, int physics_rows) {
+  rep.cost.push_back(0.5 * C.squaredNorm());
+  rep.physics_cost.push_back(0.5 * C.head(physics_rows).squaredNorm());
+}
+
+// Books an accepted step of length t (its residual Ct, cost before it `cost`); true when the solve
+// has converged: the step gained less than opt.tolerance of the cost, or the cost is round-off.
+bool accept_step(SolveReport& rep, double t, const VecX& Ct, double cost, int physics_rows,
+                 const SolveOptions& opt, const ProgressFn& progress, int it) {
+  rep.step_length.push_back(t);
+  record_cost(rep, Ct, physics_rows);
+  if (progress) progress(it + 1, opt.max_iterations);
+  if (cost - 0.5 * Ct.squaredNorm() < opt.tolerance * cost) return true;
+  // Converged to round-off (an exact model fitted exactly): further steps only shuffle
+  // rounding errors, the line search shortens them and CG cannot reach its relative tolerance.
+  return 0.5 * Ct.squaredNorm() <= kRoundoffCost * rep.cost.front();
+}
 }  // namespace
 
 SolveReport SpaceTimeProblem::solve_lm(MatXr& Z, const SolveOptions& opt, const ProgressFn& progress) {
@@ -430,12 +448,8 @@ SolveReport SpaceTimeProblem::solve_lm(MatXr& Z, const SolveOptions& opt, const 
   SolveReport rep;
   precond_.reset();
   const int np = num_physics_rows();
-  auto record = [&](const VecX& C) {
-    rep.cost.push_back(0.5 * C.squaredNorm());
-    rep.physics_cost.push_back(0.5 * C.head(np).squaredNorm());
-  };
   linearize(Z);
-  record(C_);
+  record_cost(rep, C_, np);
   double mu = opt.lm_damping, nu = 2.0;
   for (int it = 0; it < opt.max_iterations; ++it) {
     if (it > 0) linearize_jacobian(Z);
@@ -486,11 +500,7 @@ SolveReport SpaceTimeProblem::solve_lm(MatXr& Z, const SolveOptions& opt, const 
     }
     Z = Zt;
     C_ = Ct;
-    rep.step_length.push_back(1.0);
-    record(Ct);
-    if (progress) progress(it + 1, opt.max_iterations);
-    if (cost - 0.5 * Ct.squaredNorm() < opt.tolerance * cost) break;
-    if (0.5 * Ct.squaredNorm() <= kRoundoffCost * rep.cost.front()) break;
+    if (accept_step(rep, 1.0, Ct, cost, np, opt, progress, it)) break;
   }
   linearized_ = false;
   precond_.reset();
@@ -510,16 +520,12 @@ SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const Pro
   SolveReport rep;
   precond_.reset();
   const int np = num_physics_rows();
-  auto record = [&](const VecX& C) {
-    rep.cost.push_back(0.5 * C.squaredNorm());
-    rep.physics_cost.push_back(0.5 * C.head(np).squaredNorm());
-  };
   if (opt.jacobian_every < 1) throw InvalidInput("jacobian_every must be >= 1");
   double last_step = 1.0;
   for (int it = 0; it < opt.max_iterations; ++it) {
     if (it == 0) {
       linearize(Z);
-      record(C_);
+      record_cost(rep, C_, np);
     } else if (opt.jacobian_every == 1) {
       linearize_jacobian(Z);  // C_ is already the residual at Z (from the line search)
     } else if (it % opt.jacobian_every == 0 || last_step < 1.0) {
@@ -556,13 +562,7 @@ SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const Pro
     Z = Zt;
     C_ = Ct;
     last_step = t;
-    rep.step_length.push_back(t);
-    record(Ct);
-    if (progress) progress(it + 1, opt.max_iterations);
-    if (cost - 0.5 * Ct.squaredNorm() < opt.tolerance * cost) break;
-    // Converged to round-off (an exact model fitted exactly): further steps only shuffle
-    // rounding errors, the line search shortens them and CG cannot reach its relative tolerance.
-    if (0.5 * Ct.squaredNorm() <= kRoundoffCost * rep.cost.front()) break;
+    if (accept_step(rep, t, Ct, cost, np, opt, progress, it)) break;
   }
   linearized_ = false;  // Z moved past the last linearisation
   precond_.reset();
