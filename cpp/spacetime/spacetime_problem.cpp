@@ -277,6 +277,15 @@ VecX SpaceTimeProblem::vjp(const VecX& q) const {
   return out;
 }
 
+namespace {
+// Squared column norms of J (the diagonal of J^T J) raised to 1e-12 of the largest, so that a
+// column no residual touches still gets a finite scale (CGLS) or damping (Levenberg-Marquardt).
+void floor_column_norms(VecX& d) {
+  const double floor = 1e-12 * std::max(d.maxCoeff(), 1e-300);
+  for (int i = 0; i < d.size(); ++i) d[i] = std::max(d[i], floor);
+}
+}  // namespace
+
 VecX SpaceTimeProblem::column_scale() const {
   VecX d = VecX::Zero(num_unknowns());
   const int nb = frames_ - 2;
@@ -299,8 +308,8 @@ VecX SpaceTimeProblem::column_scale() const {
     d.segment(size_t(f0) * r_, r_) += lambda_ * lambda_ * (1 - a) * (1 - a) * c;
     if (a > 0) d.segment(size_t(f0 + 1) * r_, r_) += lambda_ * lambda_ * a * a * c;
   }
-  const double floor = 1e-12 * std::max(d.maxCoeff(), 1e-300);
-  for (int i = 0; i < d.size(); ++i) d[i] = 1.0 / std::sqrt(std::max(d[i], floor));
+  floor_column_norms(d);
+  for (int i = 0; i < d.size(); ++i) d[i] = 1.0 / std::sqrt(d[i]);
   return d;
 }
 
@@ -457,17 +466,22 @@ SolveReport SpaceTimeProblem::solve_lm(MatXr& Z, const SolveOptions& opt, const 
     const Eigen::SparseMatrix<double> JtJ = J.transpose() * J;
     const VecX g = J.transpose() * C_;
     VecX d = JtJ.diagonal();
-    const double dfloor = 1e-12 * std::max(d.maxCoeff(), 1e-300);
-    for (int i = 0; i < d.size(); ++i) d[i] = std::max(d[i], dfloor);
+    floor_column_norms(d);
     const double cost = 0.5 * C_.squaredNorm();
     bool accepted = false;
     int trials = 0;
     VecX Ct;
     MatXr Zt;
+    // The damped matrices of this step share one pattern (J^T J with its whole diagonal): one
+    // symbolic analysis for all trials.
+    Eigen::SparseMatrix<double> pattern = JtJ;
+    for (int i = 0; i < pattern.rows(); ++i) pattern.coeffRef(i, i) += 0.0;
+    Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt;
+    ldlt.analyzePattern(pattern);
     for (; trials < 16 && !accepted; ++trials) {
-      Eigen::SparseMatrix<double> A = JtJ;
+      Eigen::SparseMatrix<double> A = pattern;
       for (int i = 0; i < A.rows(); ++i) A.coeffRef(i, i) += mu * d[i];
-      Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt(A);
+      ldlt.factorize(A);
       if (ldlt.info() != Eigen::Success) {
         mu *= nu;
         nu *= 2;

@@ -110,6 +110,8 @@ def test_chord_gauss_newton_reuses_the_jacobian_and_recovers_the_trajectory():
     Z0 = np.ascontiguousarray(setup.project(start))
     with pytest.raises(ValueError, match="jacobian_every"):
         setup.problem.solve(Z0, 3, 400, 1e-8, 1e-6, "lm", None, 3)
+    with pytest.raises(ValueError, match="jacobian_every"):
+        solve_spacetime(setup, start, iterations=10, tolerance=1e-6, jacobian_every=3, solver="lm")
     chord = solve_spacetime(setup, start, iterations=10, tolerance=1e-6, jacobian_every=3)
     assert chord["report"]["cg_iterations"] == out[3]["report"]["cg_iterations"]
 

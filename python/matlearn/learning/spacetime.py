@@ -98,11 +98,11 @@ def build_problem(scene, model, rec, phi, lam: float, embedding=None,
 
 
 def solve_spacetime(setup: SpaceTimeSetup, X0, iterations: int = 8, cg_iterations: int = 400,
-                    cg_tolerance: float = 1e-8, tolerance: float = 2e-3, solver: str = "lm",
+                    cg_tolerance: float = 1e-8, tolerance: float = 2e-3, solver: str | None = None,
                     progress=None, jacobian_every: int = 1) -> dict:
     """Gauss-Newton from the trajectory X0 (frames, n, 3). Returns dict(Z, X (frames, n, 3),
     V (frames, n, 3), control_forces (frames-2, n, 3) for frames 2..N, report).
-    solver: "lm" (default: Levenberg-Marquardt, the damped normal equations (J^T J + mu
+    solver: "lm" (the default, None, unless jacobian_every > 1: Levenberg-Marquardt, the damped normal equations (J^T J + mu
     diag(J^T J)) dz = -J^T C factorised at every trial, mu adapted from the gain ratio), "pcgls"
     (CG on the normal equations preconditioned by a frozen factorisation; continued with CGLS
     when it stalls), "cgls" (Jacobi-scaled CGLS on J, matrix-free) or "direct". Why LM (session
@@ -117,9 +117,9 @@ def solve_spacetime(setup: SpaceTimeSetup, X0, iterations: int = 8, cg_iteration
     and step_length is 1 for an accepted step.
     jacobian_every k > 1: the Jacobian blocks are re-evaluated only at every k-th step and after
     a shortened step (chord Gauss-Newton; the residual stays exact); a line-search variant, so
-    with k > 1 the default solver is pcgls."""
-    if solver == "lm" and jacobian_every > 1:
-        solver = "pcgls"
+    with k > 1 the default solver is pcgls (an explicit "lm" is refused by the core)."""
+    if solver is None:
+        solver = "lm" if jacobian_every == 1 else "pcgls"
     Z0 = np.ascontiguousarray(setup.project(X0))
     rep = setup.problem.solve(Z0, iterations, cg_iterations, cg_tolerance, tolerance, solver, progress,
                               jacobian_every)
