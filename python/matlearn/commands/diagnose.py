@@ -82,4 +82,9 @@ def _run(args):
     if d.get("gap_with_offset"):
         print(f"held-out gap {gb['max_error_pct']:.2f} %; with the mesh's stiffness factor E x "
               f"{d['stiffness_factor']:.3g} alone (no effect) {d['gap_with_offset']['max_error_pct']:.2f} %")
+    dec = r.get("decay") or {}
+    if dec.get("ratio") is not None:
+        print(f"decay: x{dec['ratio']:.2f} the nominal damping law's at the recorded frequencies"
+              + (f": damping {dec['change']} (alpha_M {dec['alpha_mass']:.4g} 1/s, alpha_K {dec['alpha_stiffness']:.4g} s)"
+                 if dec["change"] else " (no change concluded)"))
     return 0

@@ -116,6 +116,23 @@ def mesh_paragraph(result) -> str:
     return f"<p><b>Mesh:</b> {html.escape(text)}</p>"
 
 
+def decay_paragraph(result) -> str:
+    """The recordings' modal decay against the nominal damping law (result["decay"]), as HTML."""
+    d = result.get("decay")
+    if not d or d.get("ratio") is None:
+        return ""
+    per = "; ".join(f"{r['decay_rate']:.3g} 1/s at {r['angular_frequency']:.3g} rad/s (nominal law "
+                    f"{r['nominal_decay_rate']:.3g})" for r in d["recordings"] if r)
+    text = (f"the recorded oscillations decay x{d['ratio']:.2f} as fast as the nominal damping (with the "
+            f"integrator's numerical decay) predicts at their frequencies ({d['z']:.1f} standard errors): {per}. ")
+    if d["change"]:
+        text += (f"The damping is {d['change']} than modelled; coefficients reproducing the decays: alpha_M "
+                 f"{d['alpha_mass']:.4g} 1/s, alpha_K {d['alpha_stiffness']:.4g} s ({d['coefficients']}).")
+    else:
+        text += f"Inside {d['band'][0]:g} .. {d['band'][1]:g}: no damping change is concluded from the decays."
+    return f"<p><b>Decay:</b> {html.escape(text)}</p>"
+
+
 def write_report(out, problem, ctx, result, shares, field, fits, selected, patch_theta, labels):
     from .effects import build_model
 
@@ -162,6 +179,7 @@ def write_report(out, problem, ctx, result, shares, field, fits, selected, patch
 ({result['object_size']:.4g} m){'' if result['held_out'] else ' (no test recording: scored on train)'}.
 Floor: train rss {result['floor']['rss_train']:.3e} vs noise+discretisation {result['floor']['rss_floor']:.3e}.</p>
 {mesh_paragraph(result)}
+{decay_paragraph(result)}
 <h2>Which effect</h2><table><tr><th>effect</th><th>explained</th><th>score (BIC)</th><th>parameters</th>
 <th>gap after (max / RMS %)</th><th>confounded with</th></tr>{rows}</table>
 <h2>Where</h2>{''.join(f'<h3>{html.escape(t)}</h3><img src="{src}">' for t, src in figs)}
