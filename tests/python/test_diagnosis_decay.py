@@ -72,6 +72,11 @@ def test_recording_decay_declines_what_it_cannot_time():
     rec.drive_rest = np.zeros((1, 3))
     rec.drive = np.zeros((len(rec.times), 1, 3))
     assert decay.recording_decay(rec, d, h) is None
+    # no markers: a point-cloud-only recording
+    T = 40
+    clouds = Recording(times=np.arange(T) / 500.0, cloud_points=np.random.default_rng(0).normal(size=(10 * T, 3)),
+                       cloud_offsets=np.arange(0, 10 * T + 1, 10))
+    assert decay.recording_decay(clouds, d, h) is None
 
 
 def _bar_case(tmp, name, E_scale=1.0, damping_scale=1.0):

@@ -175,7 +175,7 @@ def recording_decay(rec, damping: Damping, h: float) -> dict | None:
     """The dominant oscillation of one free recording: {w, sigma, sigma_se, predicted, ratio,
     log_se, rel} (1/s), or None where the recording cannot time a decay (drive points, too few
     frames or markers, no lightly damped oscillation seen for a period)."""
-    if rec.has_drive:
+    if rec.has_drive or rec.markers is None:
         return None
     got = _uniform_tracks(rec)
     if got is None:
