@@ -25,9 +25,10 @@ frequency backward Euler would give that decay with: `predicted_decay`).
 Decision. The log-ratios of the usable recordings are averaged with inverse-variance weights. A
 damping change is concluded when the mean ratio lies outside DECAY_BAND and beyond MIN_Z
 standard errors of 1. The band is the estimator's spread where the damping is right: over the
-development and independent suites (123 cases, docs/results.md session 23) every case without a
-damping change lies in 0.69-1.27 (amplitude-dependent stiffness biases it low, a damaged body
-high), every Rayleigh change measured lies in 1.80-7.6.
+development and independent suites (122 cases, bench/results/decay_scan.json, docs/results.md
+session 23) every case without a damping change lies in 0.69-1.26 (amplitude-dependent stiffness
+biases it low, density and a damaged body high), every damping change detected in 1.55-4.09 (five
+strain-dependent truths, whose extra damping is small at small strains, stay in band).
 
 What it cannot tell: Rayleigh from strain-dependent damping (one amplitude per recording), nor
 reliably how the change splits between alpha_M (a mass term decays every mode alike) and alpha_K
