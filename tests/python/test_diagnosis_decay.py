@@ -145,3 +145,27 @@ def test_diagnose_reports_the_decay_and_claims_damping_from_it(tmp_path):
     stiff = diagnose(_bar_case(tmp_path, "stiffer", E_scale=1.6), tmp_path / "d_stiff", **fast)
     assert stiff["decay"]["change"] is None
     assert not {"rayleigh_damping", "strain_dependent_damping"} & set(stiff["verdict"])
+
+
+def test_evidence_decision_both_ways_and_needs_significance():
+    """The band decides both ways; a ratio outside it with too few standard errors does not."""
+    from types import SimpleNamespace
+
+    d, h, w = Damping(1.0, 4e-4), 1e-3, 90.0
+    pred = decay.predicted_decay(w, d, h)
+
+    def ev(factor, noise=2e-5, seeds=(0, 1)):
+        recs = [_modal_recording(factor * pred, w, noise=noise, seed=s) for s in seeds]
+        return decay.evidence(SimpleNamespace(scene=SimpleNamespace(damping=d, time_step=h), train=recs))
+
+    up, down, same = ev(2.5), ev(0.3), ev(1.1)
+    assert up["change"] == "higher" and up["ratio"] == pytest.approx(2.5, rel=0.05)
+    assert down["change"] == "lower" and down["ratio"] == pytest.approx(0.3, rel=0.1)
+    assert same["change"] is None and same["ratio"] == pytest.approx(1.1, rel=0.05)
+    # the candidates reproduce the decay: alpha_M alone moved, at this one frequency
+    aM, aK = up["candidates"]["mass"]
+    assert aK == pytest.approx(d.alpha_stiffness)
+    assert decay.predicted_decay(w, Damping(aM, aK), h) == pytest.approx(2.5 * pred, rel=0.05)
+    # buried in noise (marker noise as large as the motion): not significant, not concluded
+    noisy = ev(2.5, noise=2e-3, seeds=(3,))
+    assert noisy["change"] is None

@@ -306,7 +306,10 @@ def evidence(problem) -> dict:
     cands = {"scaled": _matched(good, (0.0, 0.0), (aM, aK) if aM > 0 or aK > 0 else (1.0, 0.0), h),
              "mass": _matched(good, (aM, aK), (1.0, 0.0), h),
              "stiffness": _matched(good, (aM, aK), (0.0, 1.0 / w_ref**2), h)}
-    two = _two_coefficients([m for r in good for m in r["modes"]], cands["scaled"], h)
+    try:
+        two = _two_coefficients([m for r in good for m in r["modes"]], cands["scaled"], h)
+    except (ValueError, np.linalg.LinAlgError):  # a non-finite start (a mode no law of the family decays like)
+        two = None
     if two is not None:
         cands["fitted"] = two
     base = (aM, aK) if aM > 0 or aK > 0 else (1.0, 0.0)
