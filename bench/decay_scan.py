@@ -20,7 +20,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from provenance import code_commit  # noqa: E402
 
-DAMPING = {"rayleigh_damping", "strain_dependent_damping"}
 
 
 def true_effects(case: Path):
@@ -59,9 +58,11 @@ def scan(folders):
 
 
 def summary(rows) -> dict:
+    from matlearn.diagnosis.selection import DISSIPATIVE
+
     known = [r for r in rows if r["true_effects"] is not None and r["ratio"] is not None]
-    damped = [r for r in known if DAMPING & set(r["true_effects"])]
-    plain = [r for r in known if not DAMPING & set(r["true_effects"])]
+    damped = [r for r in known if set(DISSIPATIVE) & set(r["true_effects"])]
+    plain = [r for r in known if not set(DISSIPATIVE) & set(r["true_effects"])]
 
     def span(rs):
         v = [r["ratio"] for r in rs]

@@ -435,11 +435,14 @@ void record_cost(SolveReport& rep, const VecX& C, int physics_rows) {
   rep.physics_cost.push_back(0.5 * C.head(physics_rows).squaredNorm());
 }
 
-// Books an accepted step of length t (its residual Ct, cost before it `cost`); true when the solve
-// has converged: the step gained less than opt.tolerance of the cost, or the cost is round-off.
-bool accept_step(SolveReport& rep, double t, const VecX& Ct, double cost, int physics_rows,
-                 const SolveOptions& opt, const ProgressFn& progress, int it) {
+// Books one step: its inner iterations (CG iterations or damping trials) and its length t (0: no
+// trial lowered the cost, the solve stops) with the residual Ct it reached from `cost`. True when
+// the solve stops: no step, a gain below opt.tolerance of the cost, or a round-off cost.
+bool book_step(SolveReport& rep, int inner, double t, const VecX& Ct, double cost, int physics_rows,
+               const SolveOptions& opt, const ProgressFn& progress, int it) {
+  rep.cg_iterations.push_back(inner);
   rep.step_length.push_back(t);
+  if (t == 0.0) return true;
   record_cost(rep, Ct, physics_rows);
   if (progress) progress(it + 1, opt.max_iterations);
   if (cost - 0.5 * Ct.squaredNorm() < opt.tolerance * cost) return true;
@@ -448,6 +451,15 @@ bool accept_step(SolveReport& rep, double t, const VecX& Ct, double cost, int ph
   return 0.5 * Ct.squaredNorm() <= kRoundoffCost * rep.cost.front();
 }
 }  // namespace
+
+bool SpaceTimeProblem::trial_residual(const MatXr& Zt, VecX& Ct) const {
+  try {
+    Ct = residual(Zt);
+    return true;
+  } catch (const NumericalError&) {
+    return false;  // e.g. an element inverted so far that the correction blew up
+  }
+}
 
 SolveReport SpaceTimeProblem::solve_lm(MatXr& Z, const SolveOptions& opt, const ProgressFn& progress) {
   // Levenberg-Marquardt with Marquardt's scaling: (J^T J + mu diag(J^T J)) dz = -J^T C, the
@@ -475,12 +487,12 @@ SolveReport SpaceTimeProblem::solve_lm(MatXr& Z, const SolveOptions& opt, const 
     // The damped matrices of this step share one pattern (J^T J with its whole diagonal): one
     // symbolic analysis for all trials.
     Eigen::SparseMatrix<double> pattern = JtJ;
-    for (int i = 0; i < pattern.rows(); ++i) pattern.coeffRef(i, i) += 0.0;
+    for (int i = 0; i < pattern.rows(); ++i) pattern.coeffRef(i, i) += 0.0;  // inserts a missing diagonal entry
     Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt;
     ldlt.analyzePattern(pattern);
     for (; trials < 16 && !accepted; ++trials) {
       Eigen::SparseMatrix<double> A = pattern;
-      for (int i = 0; i < A.rows(); ++i) A.coeffRef(i, i) += mu * d[i];
+      A.diagonal() += mu * d;
       ldlt.factorize(A);
       if (ldlt.info() != Eigen::Success) {
         mu *= nu;
@@ -490,12 +502,7 @@ SolveReport SpaceTimeProblem::solve_lm(MatXr& Z, const SolveOptions& opt, const 
       const VecX dz = ldlt.solve(-g);
       const double predicted = -g.dot(dz) - 0.5 * (J * dz).squaredNorm();
       Zt = Z + Eigen::Map<const MatXr>(dz.data(), frames_, r_);
-      bool ok = true;
-      try {
-        Ct = residual(Zt);
-      } catch (const NumericalError&) {
-        ok = false;
-      }
+      const bool ok = trial_residual(Zt, Ct);
       const double new_cost = ok ? 0.5 * Ct.squaredNorm() : std::numeric_limits<double>::infinity();
       if (ok && new_cost < cost && predicted > 0) {
         accepted = true;
@@ -507,14 +514,11 @@ SolveReport SpaceTimeProblem::solve_lm(MatXr& Z, const SolveOptions& opt, const 
         nu *= 2;
       }
     }
-    rep.cg_iterations.push_back(trials);
-    if (!accepted) {
-      rep.step_length.push_back(0.0);
-      break;
+    if (accepted) {
+      Z = Zt;
+      C_ = Ct;
     }
-    Z = Zt;
-    C_ = Ct;
-    if (accept_step(rep, 1.0, Ct, cost, np, opt, progress, it)) break;
+    if (book_step(rep, trials, accepted ? 1.0 : 0.0, Ct, cost, np, opt, progress, it)) break;
   }
   linearized_ = false;
   precond_.reset();
@@ -558,25 +562,18 @@ SolveReport SpaceTimeProblem::solve(MatXr& Z, const SolveOptions& opt, const Pro
     MatXr Zt;
     for (int ls = 0; ls < 12; ++ls, t *= 0.5) {
       Zt = Z + t * dZ;
-      try {
-        Ct = residual(Zt);
-      } catch (const NumericalError&) {
-        continue;  // e.g. an element inverted so far the correction blew up: shorten the step
-      }
+      if (!trial_residual(Zt, Ct)) continue;  // shorten the step
       if (0.5 * Ct.squaredNorm() < cost) {
         accepted = true;
         break;
       }
     }
-    rep.cg_iterations.push_back(cg);
-    if (!accepted) {
-      rep.step_length.push_back(0.0);
-      break;
+    if (accepted) {
+      Z = Zt;
+      C_ = Ct;
+      last_step = t;
     }
-    Z = Zt;
-    C_ = Ct;
-    last_step = t;
-    if (accept_step(rep, t, Ct, cost, np, opt, progress, it)) break;
+    if (book_step(rep, cg, accepted ? t : 0.0, Ct, cost, np, opt, progress, it)) break;
   }
   linearized_ = false;  // Z moved past the last linearisation
   precond_.reset();

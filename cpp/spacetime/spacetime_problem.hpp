@@ -111,6 +111,9 @@ class SpaceTimeProblem {
   /// factorised at every trial, mu from opt.lm_damping adapted by the gain ratio (Nielsen).
   /// The report's cg_iterations are the trials per step, step_length 1 (accepted) or 0.
   SolveReport solve_lm(MatXr& Z, const SolveOptions& opt, const ProgressFn& progress = {});
+  /// The residual at a trial point into Ct; false (Ct unchanged) where the model cannot be
+  /// evaluated there (NumericalError: the step is rejected, not the solve).
+  bool trial_residual(const MatXr& Zt, VecX& Ct) const;
   /// Control forces fc_j for frames j = 2..N, ((frames-2)*#V x 3), N; zero on constrained
   /// vertices. fc_j = M (x_{j-2} - 2 x_{j-1} + x_j)/h^2 - f(x_j, v_j) - fext_j.
   MatX3 control_forces(const MatXr& Z) const;

@@ -195,22 +195,31 @@ def recording_decay(rec, damping: Damping, h: float) -> dict | None:
         poles, se, amps, rel = _varpro(t, Y, [(-l.real, l.imag) for _, l in cand[:MODES]])
     except (np.linalg.LinAlgError, ValueError):
         return None
-    modes = []
-    for j in range(len(poles)):  # every well-timed lightly damped oscillation (coefficient fit)
-        sj, wj = (float(v) for v in poles[j])
-        if wj * T >= 2 * np.pi * MIN_PERIODS and wj < 0.5 * nyquist and sj > 0 and np.isfinite(se[j, 0]) \
-                and se[j, 0] < 0.3 * sj and 0 < predicted_decay(wj, damping, h) <= MAX_DAMPING_RATIO * wj:
-            modes.append({"w": wj, "sigma": sj, "log_se": float(se[j, 0]) / sj})
+    def timed(j):
+        """(sigma, w, se, nominal-law decay) of fitted oscillation j, or None where its decay
+        cannot be timed: seen for less than MIN_PERIODS, near the Nyquist frequency, growing, or
+        damped too heavily on the nominal law."""
+        s, w = (float(v) for v in poles[j])
+        if not (w * T >= 2 * np.pi * MIN_PERIODS and w < 0.5 * nyquist and s > 0 and np.isfinite(se[j, 0])):
+            return None
+        pred = predicted_decay(w, damping, h)
+        return (s, w, float(se[j, 0]), pred) if 0 < pred <= MAX_DAMPING_RATIO * w else None
+
+    got = [timed(j) for j in range(len(poles))]
+    # every well-timed oscillation (the coefficient fit); the dominant one (the ratio)
+    modes = [{"w": g[1], "sigma": g[0], "log_se": g[2] / g[0]} for g in got if g and g[2] < 0.3 * g[0]]
     k = int(np.argmax(amps))
-    sigma, w = (float(v) for v in poles[k])
-    if not (w * T >= 2 * np.pi * MIN_PERIODS and w < 0.5 * nyquist and sigma > 0 and np.isfinite(se[k, 0])):
+    if got[k] is None:
         return None
-    pred = predicted_decay(w, damping, h)
-    if not 0 < pred <= MAX_DAMPING_RATIO * w:
-        return None
-    return {"w": w, "sigma": sigma, "sigma_se": float(se[k, 0]), "predicted": pred,
-            "ratio": sigma / pred, "log_se": float(se[k, 0]) / sigma, "rel": rel,
+    sigma, w, sigma_se, pred = got[k]
+    return {"w": w, "sigma": sigma, "sigma_se": sigma_se, "predicted": pred,
+            "ratio": sigma / pred, "log_se": sigma_se / sigma, "rel": rel,
             "share": float(amps[k] / amps.sum()), "modes": modes}
+
+
+def _weights(rows) -> np.ndarray:
+    """Inverse variances of the rows' log decay rates (their relative errors floored at 0.1 %)."""
+    return np.array([1.0 / max(r["log_se"], 1e-3) ** 2 for r in rows])
 
 
 def _matched(rows, start, direction, h):
@@ -218,7 +227,7 @@ def _matched(rows, start, direction, h):
     change) whose predicted decays match the measured ones of `rows` (inverse-variance weighted
     log-mean ratio 1), by bisection: the decays grow with t."""
     start, direction = np.asarray(start, float), np.asarray(direction, float)
-    wts = np.array([1.0 / max(r["log_se"], 1e-3) ** 2 for r in rows])
+    wts = _weights(rows)
 
     def coefficients(t):
         return np.maximum(start + t * direction, 0.0)
@@ -254,6 +263,7 @@ def _two_coefficients(modes, start, h):
     if len(modes) < 2 or ws.max() < SPREAD * ws.min():
         return None
     sig = np.array([m["sigma"] for m in modes])
+    # each mode's relative error floored at 1 %: no single well-timed mode dictates the split
     wts = 1.0 / np.maximum([m["log_se"] for m in modes], 1e-2)
     scale = np.array([max(start[0], 1e-3), max(start[1], 1e-7)])
 
@@ -286,7 +296,7 @@ def evidence(problem) -> dict:
            "band": list(DECAY_BAND), "min_z": MIN_Z}
     if not good:
         return out
-    wts = np.array([1.0 / max(r["log_se"], 1e-3) ** 2 for r in good])
+    wts = _weights(good)
     m = float(wts @ np.log([r["ratio"] for r in good]) / wts.sum())
     se = float(1.0 / np.sqrt(wts.sum()))
     ratio, z = float(np.exp(m)), m / se
@@ -303,7 +313,8 @@ def evidence(problem) -> dict:
     # (pipeline._decay_claim). Directions are in units that make a unit step move the decay at
     # the measured frequencies by about the same amount.
     w_ref = float(np.median([r["w"] for r in good]))
-    cands = {"scaled": _matched(good, (0.0, 0.0), (aM, aK) if aM > 0 or aK > 0 else (1.0, 0.0), h),
+    base = (aM, aK) if aM > 0 or aK > 0 else (1.0, 0.0)  # alpha_M alone when both are zero
+    cands = {"scaled": _matched(good, (0.0, 0.0), base, h),
              "mass": _matched(good, (aM, aK), (1.0, 0.0), h),
              "stiffness": _matched(good, (aM, aK), (0.0, 1.0 / w_ref**2), h)}
     try:
@@ -312,7 +323,6 @@ def evidence(problem) -> dict:
         two = None
     if two is not None:
         cands["fitted"] = two
-    base = (aM, aK) if aM > 0 or aK > 0 else (1.0, 0.0)
     c = cands["scaled"][0] / base[0] if base[0] > 0 else cands["scaled"][1] / base[1]
     out.update(ratio=ratio, z=float(z), change=change, scale=float(c), candidates=cands,
                alpha_mass=cands["scaled"][0], alpha_stiffness=cands["scaled"][1], split="scaled")
@@ -345,12 +355,9 @@ def summary(ev: dict) -> str:
 def report(ev: dict) -> dict:
     """The evidence for diagnosis.json: the mean ratio, its z, the change concluded, and per
     train recording the dominant oscillation (null where none is usable)."""
-    keys = ("w", "sigma", "sigma_se", "predicted", "ratio")  # (the modes list stays internal)
+    names = {"w": "angular_frequency", "sigma": "decay_rate", "sigma_se": "decay_rate_se",
+             "predicted": "nominal_decay_rate", "ratio": "ratio"}
     return {"ratio": ev["ratio"], "z": ev["z"], "change": ev["change"], "band": ev["band"],
             "alpha_mass": ev.get("alpha_mass"), "alpha_stiffness": ev.get("alpha_stiffness"),
             "coefficients": ev.get("split"),
-            "recordings": [None if r is None else {("angular_frequency" if k == "w" else
-                                                     "decay_rate" if k == "sigma" else
-                                                     "decay_rate_se" if k == "sigma_se" else
-                                                     "nominal_decay_rate" if k == "predicted" else k): r[k]
-                                                    for k in keys} for r in ev["recordings"]]}
+            "recordings": [None if r is None else {names[k]: r[k] for k in names} for r in ev["recordings"]]}

@@ -28,8 +28,8 @@ from . import contract, decay, fitting, history, ranking, region, simcache, wher
 from .discretisation import discretisation
 from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContext, describe
 from .problem import Problem
-from .selection import (ADD_FACTOR, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE, _add_nested_ties,
-                        _dof, _explained_excess, _forward_select, _linearisation_refuted,
+from .selection import (ADD_FACTOR, DISSIPATIVE, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE,
+                        _add_nested_ties, _dof, _explained_excess, _forward_select, _linearisation_refuted,
                         _pair_challenge, _pair_rescue, _rank, _resolve_nested, _shortfall_replacements,
                         _still_unexplained, _support_or_region)
 
@@ -383,7 +383,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                 selected = polished
         elif significant:
             verdict = ["unexplained"]
-    if decay_ev["change"] and not any(v in DAMPING_FAMILIES for v in verdict):
+    if decay_ev["change"] and not any(v in DISSIPATIVE for v in verdict):
         verdict, selected, decay_ev = _decay_claim(P, ctx, decay_ev, verdict, selected, ranked, say)
     hist = history.check(P, ctx, selected, rss_floor, say, add_factor=ADD_FACTOR, stateless=J,
                          strains=history.damage_strains(fields)) if above else None
@@ -469,9 +469,6 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         + (f", {P.store.hits} of them from the interrupted run)" if resume else ")"))
     P.store.remove()
     return result
-
-
-DAMPING_FAMILIES = ("rayleigh_damping", "strain_dependent_damping")
 
 
 def _decay_claim(P, ctx, ev, verdict, selected, ranked, say):
