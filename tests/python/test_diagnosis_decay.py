@@ -141,6 +141,11 @@ def test_diagnose_reports_the_decay_and_claims_damping_from_it(tmp_path):
     # the held-out gap shrinks beyond what the mesh's stiffness factor alone removes (most of
     # this coarse bar's gap is its mesh: 5.9 % before, 3.7 % with the factor, 3.4 % with the damping)
     assert lead["gap_after"]["max_error_pct"] < damped["discretisation"]["gap_with_offset"]["max_error_pct"]
+    # a damping family claimed from the decays reports the share of the decay mismatch it
+    # explains (its train-marker share is blind to the change)
+    for e in damped["effects"]:
+        if e.get("evidence") == "decay":
+            assert e["explained"] > 0.8 and e["name"] in damped["verdict"]
 
     stiff = diagnose(_bar_case(tmp_path, "stiffer", E_scale=1.6), tmp_path / "d_stiff", **fast)
     assert stiff["decay"]["change"] is None
@@ -166,6 +171,12 @@ def test_evidence_decision_both_ways_and_needs_significance():
     aM, aK = up["candidates"]["mass"]
     assert aK == pytest.approx(d.alpha_stiffness)
     assert decay.predicted_decay(w, Damping(aM, aK), h) == pytest.approx(2.5 * pred, rel=0.05)
+    # what the candidate explains: the whole decay mismatch (it reproduces the measured decay at
+    # the one frequency), none of it with the nominal coefficients, part of it half-way
+    assert decay.explained(decay.choose(up, "mass")) == pytest.approx(1.0, abs=0.01)
+    assert decay.explained(dict(up, alpha_mass=d.alpha_mass, alpha_stiffness=d.alpha_stiffness)) == 0.0
+    half = decay.explained(dict(up, alpha_mass=0.5 * (aM + d.alpha_mass), alpha_stiffness=aK))
+    assert 0.3 < half < 0.95
     # buried in noise (marker noise as large as the motion): not significant, not concluded
     noisy = ev(2.5, noise=2e-3, seeds=(3,))
     assert noisy["change"] is None

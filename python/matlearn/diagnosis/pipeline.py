@@ -421,6 +421,8 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             entry["gap_after"] = _safe_gap(P, ctx, fit.params if fit else {name: theta}, fast=True)
         if e["confounded_with"]:
             entry["confounded_with"] = e["confounded_with"]
+        if "evidence" in e:  # explained measured on other evidence than the train markers
+            entry["evidence"] = e["evidence"]
         loo = cv.get(name, cv.get(name + "/claim"))
         if loo is not None:
             entry["loo_rss"] = loo
@@ -495,7 +497,12 @@ def _decay_claim(P, ctx, ev, verdict, selected, ranked, say):
     new = [name] + claimed if not claimed else claimed + [name]
     fit = fitting.Fit("+".join(new), tried[split][1], tried[split][0],
                       sum(_dof(n) for n in new if n in FAMILIES))
+    share = decay.explained(ev)
     for row in ranked:
+        if row["name"] == name:
+            # what it explains is the decay mismatch (decay.explained), not the train markers'
+            # residual, in which the mesh's discrepancy removed at the nominal damping hides it
+            row["explained"], row["evidence"] = share, "decay"
         if row["name"] == name and "strain_dependent_damping" not in row["confounded_with"]:
             row["confounded_with"].append("strain_dependent_damping")
         if row["name"] == "strain_dependent_damping" and name not in row["confounded_with"]:

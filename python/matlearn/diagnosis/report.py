@@ -150,7 +150,8 @@ def write_report(out, problem, ctx, result, shares, field, fits, selected, patch
                                                 "residual share by time (s)", "share"))))
     eff = result["effects"]
     figs.append(("Effect ranking", _png(_bar([e["name"] for e in eff], [e["explained"] for e in eff],
-                                             "fraction of train residual explained", "explained"))))
+                                             "fraction of the residual explained (train markers; decay-claimed damping: the decay mismatch)",
+                                             "explained"))))
     pairs = [("nominal", problem.scene.model())]
     if selected is not None:
         pairs.append(("with " + " + ".join(selected.params), build_model(ctx, selected.params)))
@@ -164,7 +165,8 @@ def write_report(out, problem, ctx, result, shares, field, fits, selected, patch
         "located_region": (ctx.region if ctx.region is not None else np.zeros(mesh.num_tets)).astype(float),
     })
     rows = "".join(
-        f"<tr><td>{html.escape(e['name'])}</td><td>{e['explained']:.3f}</td><td>{e['score']:.1f}</td>"
+        f"<tr><td>{html.escape(e['name'])}</td><td>{e['explained']:.3f}"
+        f"{' (of the decay mismatch)' if e.get('evidence') == 'decay' else ''}</td><td>{e['score']:.1f}</td>"
         f"<td>{html.escape(json.dumps(e['parameters']))}</td>"
         f"<td>{'' if not e.get('gap_after') else '%.2f / %.2f' % (e['gap_after']['max_error_pct'], e['gap_after']['rms_error_pct'])}"
         f"{' (grows the held-out gap)' if e.get('held_out_worse') else ''}</td>"
