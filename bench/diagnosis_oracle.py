@@ -4,7 +4,7 @@ For every built case of bench/diagnosis_independent.py (a folder with scene.toml
 the diagnosis it ran, diag/diagnosis.json) the held-out (test) gap is replayed, with the same
 scoring as `matlearn diagnose` (fitting.gap, % of the object size), for:
 
-* the nominal model (the diagnosis' gap_before);
+* the nominal model (the diagnosis' own gap_before, read from its diagnosis.json);
 * the nominal model with the mesh's stiffness offset the diagnosis applied (no effect);
 * the *true* effect carried onto the model's mesh with the mesh's stiffness offset refitted to
   the train recordings inside the diagnosis' plausible range (the "oracle": a diagnosis that knows
@@ -91,36 +91,35 @@ def case_row(case: Path) -> dict | None:
         P = Problem(case / "scene.toml", estimate_velocity="auto" if START_DECISION else False)
         scene = P.scene
 
-        def gap(model):
+        def gap(model):  # None: the model cannot be simulated on the held-out motion
             try:
-                return None if model is None else fitting.gap(P, model)["max_error_pct"]
+                return fitting.gap(P, model)["max_error_pct"]
             except RuntimeError:
                 return None
 
         disc = d["discretisation"]
         k = disc["stiffness_factor"]
         lo, hi = disc["factor_range"]
-        def train_rss(model):
-            r = fitting.stack_residuals(P.train, lambda rec: fitting.predict(P, model, rec), P.object_size)
+
+        def train_rss(model):  # raw: this Problem has no discretisation discrepancy to remove
+            r = fitting.marker_residual(P, model)
             return float(r @ r)
 
-        before = gap(scene.model())
         factors = sorted(set(np.geomspace(lo, hi, OFFSET_SCAN).tolist() + [k]))
         models = [true_model(scene, truth, f) for f in factors]
-        if models[0] is None:
-            at_offset, scan, k_oracle = None, [], None
-        else:
+        at_offset = best = k_oracle = None
+        if models[0] is not None:
             j = int(np.argmin([train_rss(m) for m in models]))
-            k_oracle = factors[j]
-            scan = [g for g in (gap(m) for m in models) if g is not None]
-            at_offset = gap(models[j])
+            gaps = [gap(m) for m in models]
+            k_oracle, at_offset = factors[j], gaps[j]
+            best = min((g for g in gaps if g is not None), default=None)
+    before = d["gap_before"]["max_error_pct"]
     verdict = d["verdict"]
     reached = before
     if verdict and verdict != ["unexplained"]:
         got = [e.get("gap_after") for e in d["effects"] if e["name"] == verdict[-1]]  # cumulative
         if got and got[0]:
             reached = got[0]["max_error_pct"]
-    best = min(scan + ([at_offset] if at_offset is not None else [])) if (scan or at_offset is not None) else None
     return {"case": case.name, "suite": case.parent.name, "true_effects": truth["effects"], "verdict": verdict,
             "gap_before_pct": before, "gap_with_offset_pct": (disc.get("gap_with_offset") or {}).get("max_error_pct"),
             "oracle_gap_pct": at_offset, "oracle_best_offset_gap_pct": best, "diagnosis_gap_after_pct": reached,
@@ -134,20 +133,16 @@ def shrink(before, after):
 def summary(rows) -> dict:
     eff = [r for r in rows if r["true_effects"]]
 
-    def med(key):
-        v = [shrink(r["gap_before_pct"], r[key]) for r in eff]
-        v = [x for x in v if x is not None]
+    def med(key, rows):
+        v = [x for x in (shrink(r["gap_before_pct"], r[key]) for r in rows) if x is not None]
         return (float(np.median(v)) if v else None), len(v)
 
     out = {}
     for key in ("oracle_gap_pct", "oracle_best_offset_gap_pct", "diagnosis_gap_after_pct", "gap_with_offset_pct"):
-        m, n = med(key)
-        out[f"median_shrink_{key.removesuffix('_pct')}"] = m
-        out[f"cases_{key.removesuffix('_pct')}"] = n
+        out[f"median_shrink_{key.removesuffix('_pct')}"], out[f"cases_{key.removesuffix('_pct')}"] = med(key, eff)
     # the diagnosis on the cases that have an oracle (without the clamp pads)
-    same = [shrink(r["gap_before_pct"], r["diagnosis_gap_after_pct"]) for r in eff if r["oracle_gap_pct"] is not None]
-    same = [x for x in same if x is not None]
-    out["median_shrink_diagnosis_where_oracle"] = float(np.median(same)) if same else None
+    out["median_shrink_diagnosis_where_oracle"] = med(
+        "diagnosis_gap_after_pct", [r for r in eff if r["oracle_gap_pct"] is not None])[0]
     return out
 
 

@@ -173,9 +173,9 @@ def test_evidence_decision_both_ways_and_needs_significance():
     assert decay.predicted_decay(w, Damping(aM, aK), h) == pytest.approx(2.5 * pred, rel=0.05)
     # what the candidate explains: the whole decay mismatch (it reproduces the measured decay at
     # the one frequency), none of it with the nominal coefficients, part of it half-way
-    assert decay.explained(decay.choose(up, "mass")) == pytest.approx(1.0, abs=0.01)
-    assert decay.explained(dict(up, alpha_mass=d.alpha_mass, alpha_stiffness=d.alpha_stiffness)) == 0.0
-    half = decay.explained(dict(up, alpha_mass=0.5 * (aM + d.alpha_mass), alpha_stiffness=aK))
+    assert decay.explained(decay.choose(up, "mass"), h) == pytest.approx(1.0, abs=0.01)
+    assert decay.explained(dict(up, alpha_mass=d.alpha_mass, alpha_stiffness=d.alpha_stiffness), h) == 0.0
+    half = decay.explained(dict(up, alpha_mass=0.5 * (aM + d.alpha_mass), alpha_stiffness=aK), h)
     assert 0.3 < half < 0.95
     # buried in noise (marker noise as large as the motion): not significant, not concluded
     noisy = ev(2.5, noise=2e-3, seeds=(3,))

@@ -222,6 +222,13 @@ def _weights(rows) -> np.ndarray:
     return np.array([1.0 / max(r["log_se"], 1e-3) ** 2 for r in rows])
 
 
+def _log_misfits(rows, damping: Damping, h: float) -> np.ndarray:
+    """log(measured / predicted decay) of each row under `damping` at step h (inf where the law
+    makes no mode oscillate at the row's frequency)."""
+    with np.errstate(divide="ignore"):
+        return np.array([np.log(r["sigma"] / predicted_decay(r["w"], damping, h)) for r in rows])
+
+
 def _matched(rows, start, direction, h):
     """The Rayleigh coefficients start + t direction (t as far as both stay >= 0, up to a 1e3-fold
     change) whose predicted decays match the measured ones of `rows` (inverse-variance weighted
@@ -233,9 +240,7 @@ def _matched(rows, start, direction, h):
         return np.maximum(start + t * direction, 0.0)
 
     def misfit(t):
-        d = Damping(*coefficients(t))
-        with np.errstate(divide="ignore"):
-            return float(wts @ np.array([np.log(r["sigma"] / predicted_decay(r["w"], d, h)) for r in rows]))
+        return float(wts @ _log_misfits(rows, Damping(*coefficients(t)), h))
 
     neg = [-start[i] / direction[i] for i in range(2) if direction[i] > 0]
     lo = max(neg) if neg else 0.0
@@ -293,7 +298,7 @@ def evidence(problem) -> dict:
             rows.append(None)
     good = [r for r in rows if r is not None]
     out = {"recordings": rows, "ratio": None, "z": None, "change": None, "scale": None,
-           "band": list(DECAY_BAND), "min_z": MIN_Z, "time_step": float(scene.time_step)}
+           "band": list(DECAY_BAND), "min_z": MIN_Z}
     if not good:
         return out
     wts = _weights(good)
@@ -343,9 +348,9 @@ def choose(ev: dict, name: str) -> dict:
     return dict(ev, alpha_mass=float(a), alpha_stiffness=float(k), split=name)
 
 
-def explained(ev: dict) -> float:
-    """The share of the decay mismatch that the estimate's coefficients remove: 1 - the
-    inverse-variance weighted sum of squared log(measured / predicted decay) over the usable
+def explained(ev: dict, h: float) -> float:
+    """The share of the decay mismatch that the estimate's coefficients remove at step h: 1 -
+    the inverse-variance weighted sum of squared log(measured / predicted decay) over the usable
     recordings with the estimate (alpha_mass, alpha_stiffness), divided by the same with the
     nominal law (in [0, 1]; 0 without a usable recording or a mismatch). This is what a damping
     effect claimed from the decays (pipeline._decay_claim) "explains" (formats.md `explained`):
@@ -354,10 +359,8 @@ def explained(ev: dict) -> float:
     if not good or ev.get("alpha_mass") is None:
         return 0.0
     wts = _weights(good)
-    d = Damping(ev["alpha_mass"], ev["alpha_stiffness"])
-    with np.errstate(divide="ignore"):
-        before = float(wts @ np.log([r["ratio"] for r in good]) ** 2)
-        after = float(wts @ np.log([r["sigma"] / predicted_decay(r["w"], d, ev["time_step"]) for r in good]) ** 2)
+    before = float(wts @ np.log([r["ratio"] for r in good]) ** 2)
+    after = float(wts @ _log_misfits(good, Damping(ev["alpha_mass"], ev["alpha_stiffness"]), h) ** 2)
     if not (before > 0 and np.isfinite(after)):
         return 0.0
     return float(np.clip(1.0 - after / before, 0.0, 1.0))

@@ -497,14 +497,13 @@ def _decay_claim(P, ctx, ev, verdict, selected, ranked, say):
     new = [name] + claimed if not claimed else claimed + [name]
     fit = fitting.Fit("+".join(new), tried[split][1], tried[split][0],
                       sum(_dof(n) for n in new if n in FAMILIES))
-    share = decay.explained(ev)
     for row in ranked:
         if row["name"] == name:
             # what it explains is the decay mismatch (decay.explained), not the train markers'
             # residual, in which the mesh's discrepancy removed at the nominal damping hides it
-            row["explained"], row["evidence"] = share, "decay"
-        if row["name"] == name and "strain_dependent_damping" not in row["confounded_with"]:
-            row["confounded_with"].append("strain_dependent_damping")
+            row["explained"], row["evidence"] = decay.explained(ev, P.scene.time_step), "decay"
+            if "strain_dependent_damping" not in row["confounded_with"]:
+                row["confounded_with"].append("strain_dependent_damping")
         if row["name"] == "strain_dependent_damping" and name not in row["confounded_with"]:
             row["confounded_with"].append(name)
     say("decay: train rss of the coefficient splits " + ", ".join(
