@@ -83,6 +83,7 @@ def test_report_is_self_contained_and_the_residual_map_is_readable(stiff):
     d = json.loads((out / "diagnosis.json").read_text())["discretisation"]
     assert "<b>Mesh:</b>" in page and f"E x {d['stiffness_factor']:.3g}" in page
     assert f"max {d['gap_with_offset']['max_error_pct']:.2f} %" in page
+    assert f"once-refined mesh (each tet split into 8) gives max {d['gap_refined_mesh']['max_error_pct']:.2f} %" in page
     m = meshio.read(out / "residual_map.vtu")
     share = m.cell_data["residual_share"][0]
     assert len(share) == len(m.cells_dict["tetra"])

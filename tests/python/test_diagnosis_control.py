@@ -17,6 +17,8 @@ def test_control_case_claims_no_effect(tmp_path):
     d = result["discretisation"]
     assert d["refined_mesh_factor"] < 0.9 and d["factor_range"][0] <= d["stiffness_factor"] <= d["factor_range"][1]
     assert d["gap_with_offset"]["max_error_pct"] < 0.3 * result["gap_before"]["max_error_pct"]
+    # the nominal material on the once-refined mesh, closer to the finer truth, also shrinks it
+    assert d["gap_refined_mesh"]["max_error_pct"] < 0.5 * result["gap_before"]["max_error_pct"]
 
 
 def test_truth_on_the_model_mesh_claims_no_effect(tmp_path):
@@ -28,3 +30,6 @@ def test_truth_on_the_model_mesh_claims_no_effect(tmp_path):
     assert floor["rss_nominal_raw"] < 1.5 * floor["rss_noise"]
     assert floor["rss_train"] > 10 * floor["rss_floor"]  # the corrected baseline alone would claim
     assert result["verdict"] == []
+    # here the truth *is* the model's mesh: the once-refined mesh moves away from it
+    d = result["discretisation"]
+    assert d["gap_refined_mesh"]["max_error_pct"] > 2 * result["gap_before"]["max_error_pct"]

@@ -81,7 +81,9 @@ def _run(args):
     d, gb = r.get("discretisation") or {}, r["gap_before"]
     if d.get("gap_with_offset"):
         print(f"held-out gap {gb['max_error_pct']:.2f} %; with the mesh's stiffness factor E x "
-              f"{d['stiffness_factor']:.3g} alone (no effect) {d['gap_with_offset']['max_error_pct']:.2f} %")
+              f"{d['stiffness_factor']:.3g} alone (no effect) {d['gap_with_offset']['max_error_pct']:.2f} %"
+              + (f"; on the once-refined mesh {d['gap_refined_mesh']['max_error_pct']:.2f} %"
+                 if d.get("gap_refined_mesh") else ""))
     dec = r.get("decay") or {}
     if dec.get("ratio") is not None:
         print(f"decay: x{dec['ratio']:.2f} the nominal damping law's at the recorded frequencies"
