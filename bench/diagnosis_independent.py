@@ -43,6 +43,7 @@ import trimesh  # noqa: E402
 from scipy.interpolate import CubicSpline  # noqa: E402
 
 from matlearn import _core, meshes  # noqa: E402
+from diagnosis_scoring import median_refined_shrink, refined_mesh_gap  # noqa: E402
 from provenance import code_commit  # noqa: E402
 from matlearn.materials import Damping, Material, make_model  # noqa: E402
 
@@ -447,6 +448,7 @@ def score(result: dict, info: dict) -> dict:
     after = with_gap[applied[-1]]["gap_after"]["max_error_pct"] if applied else before
     return {"verdict": verdict, "top1_strict": strict, "top1_correct": bool(top1), "region_iou": region_iou,
             "gap_before_pct": before, "gap_after_pct": after,
+            "gap_refined_mesh_pct": refined_mesh_gap(result),
             "ranking": [[e["name"], round(float(e.get("explained", 0.0)), 3)] for e in result["effects"][:4]]}
 
 
@@ -506,6 +508,7 @@ def totals(rows) -> dict:
             "control_clean": all(r["verdict"] == [] for r in ctrl) if ctrl else None,
             "mean_region_iou": float(np.mean(ious)) if ious else None,
             "median_gap_shrink": float(np.median(shrink)) if shrink else None,
+            "median_gap_shrink_refined_mesh": median_refined_shrink(ok),
             "total_wall_s": float(sum(r.get("wall_s", 0.0) for r in rows)),
             "total_cpu_s": float(sum(r.get("cpu_s", 0.0) for r in rows)),
             "total_build_s": float(sum(r.get("build_s", 0.0) for r in rows)),

@@ -38,6 +38,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
+from diagnosis_scoring import median_refined_shrink, refined_mesh_gap  # noqa: E402
 from matlearn.diagnosis import diagnose
 from matlearn.materials import Damping, Material
 from matlearn.scene import vertices_in_box
@@ -141,7 +142,7 @@ def score_case(name, spec, result, region_model, wall):
     return {"case": name, "true_effects": true, "verdict": verdict, "top1_correct": bool(top1),
             "top1_strict": bool(strict),
             "region_iou": region_iou, "gap_before_pct": before, "gap_after_pct": after,
-            "wall_s": wall}
+            "gap_refined_mesh_pct": refined_mesh_gap(result), "wall_s": wall}
 
 
 def _strict(row) -> bool:
@@ -171,6 +172,7 @@ def totals(rows):
         "truth_failed_cases": unbuilt,
         "mean_region_iou": float(np.mean(ious)) if ious else None,
         "median_gap_shrink": float(np.median(shrink)) if shrink else None,
+        "median_gap_shrink_refined_mesh": median_refined_shrink(rows),
         "total_wall_s": float(sum(r["wall_s"] for r in rows)),
         "max_wall_s": float(max(r["wall_s"] for r in rows)) if rows else None,
     }
