@@ -25,7 +25,7 @@ def register(subparsers):
     p.add_argument("--follow-damping", action="store_true",
                    help="experimental: the mesh's discretisation error removed from the data follows "
                    "each candidate's Rayleigh damping (finds strong damping on coarse meshes, also "
-                   "claims damping more often where there is none; docs/diagnosis.md)")
+                   "claims damping more often where there is none; docs/diagnosis_design.md)")
     p.set_defaults(func=_run)
 
 
