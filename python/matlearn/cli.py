@@ -6,8 +6,23 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import warnings
 
 from . import commands
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("matlearn")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings on the command line as one line, without Python's source excerpt."""
+    print(f"matlearn: warning: {message}", file=file or sys.stderr)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -16,6 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Learn material corrections from recordings of soft objects and diagnose "
         "the sim-to-real gap. All quantities in SI units (m, s, kg, Pa).",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
         module = importlib.import_module(f"{commands.__name__}.{info.name}")
@@ -27,10 +43,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    warnings.showwarning = _show_warning
     try:
         return int(args.func(args) or 0)
-    except (FileNotFoundError, ValueError, RuntimeError) as err:
-        print(f"matlearn {args.command}: error: {err}", file=sys.stderr)
+    except (OSError, ValueError, RuntimeError) as err:  # OSError: missing files, a file where a folder goes
+        text = str(err) if not isinstance(err, OSError) or not err.filename else (
+            f"{err.strerror or type(err).__name__}: {err.filename}")
+        print(f"matlearn {args.command}: error: {text}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         hint = " (the same command with --resume continues it)" if hasattr(args, "resume") else ""

@@ -10,6 +10,12 @@ from . import _core
 MODELS = ("corotated", "neo_hookean", "stvk", "designed")
 
 
+def _show(value) -> str:
+    """A scalar as itself; a per-tet array by its offending range."""
+    a = np.asarray(value, float)
+    return repr(float(a)) if a.ndim == 0 else f"values in [{a.min():.4g}, {a.max():.4g}] ({a.size} tets)"
+
+
 @dataclass
 class Material:
     """An elastic law with Young's modulus E (Pa), Poisson ratio nu and density (kg/m^3).
@@ -30,11 +36,11 @@ class Material:
             raise ValueError(f"unknown material model {self.model!r}; expected one of {MODELS}")
         nu = np.asarray(self.poisson_ratio, float)
         if np.any(nu < 0) or np.any(nu >= 0.5):
-            raise ValueError(f"poisson_ratio must lie in [0, 0.5), got {self.poisson_ratio}")
+            raise ValueError(f"poisson_ratio must lie in [0, 0.5), got {_show(self.poisson_ratio)}")
         if np.any(np.asarray(self.youngs_modulus, float) <= 0):
-            raise ValueError("youngs_modulus must be > 0 (Pa)")
+            raise ValueError(f"youngs_modulus must be > 0 (Pa), got {_show(self.youngs_modulus)}")
         if np.any(np.asarray(self.density, float) <= 0):
-            raise ValueError("density must be > 0 (kg/m^3)")
+            raise ValueError(f"density must be > 0 (kg/m^3), got {_show(self.density)}")
 
     def lame(self, num_tets: int):
         E = np.broadcast_to(np.asarray(self.youngs_modulus, float), (num_tets,)).copy()
@@ -55,7 +61,8 @@ class Damping:
 
     def __post_init__(self):
         if self.alpha_mass < 0 or self.alpha_stiffness < 0:
-            raise ValueError("Rayleigh coefficients must be >= 0")
+            raise ValueError(f"Rayleigh coefficients must be >= 0, got alpha_mass {self.alpha_mass} (1/s), "
+                             f"alpha_stiffness {self.alpha_stiffness} (s)")
 
 
 def make_model(mesh, material: Material, damping: Damping | None = None, correction=None):

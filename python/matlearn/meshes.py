@@ -27,6 +27,44 @@ def _orient(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return tets
 
 
+def folded_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Indices of tets that overlap a neighbour: across an interior face (shared by two tets) the
+    two opposite vertices must lie on opposite sides of the face's plane; where they lie on the
+    same side the mesh folds over itself (an inverted element that a per-tet re-orientation
+    hides). Faces shared by more than two tets (a non-manifold mesh) count too."""
+    V = np.asarray(vertices, float)
+    T = np.asarray(tets, np.int64)
+    local = np.array([[1, 2, 3, 0], [0, 2, 3, 1], [0, 1, 3, 2], [0, 1, 2, 3]])
+    faces = T[:, local[:, :3]].reshape(-1, 3)
+    opp = T[:, local[:, 3]].reshape(-1)
+    owner = np.repeat(np.arange(len(T)), 4)
+    key = np.sort(faces, axis=1)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    bad = set(owner[counts[inv] > 2].tolist())
+    pair = np.flatnonzero(counts[inv] == 2)
+    order = pair[np.argsort(inv[pair], kind="stable")]
+    a, b = order[0::2], order[1::2]
+    k = key[a]  # the same vertex order for both sides
+    n = np.cross(V[k[:, 1]] - V[k[:, 0]], V[k[:, 2]] - V[k[:, 0]])
+    sa = np.einsum("ij,ij->i", n, V[opp[a]] - V[k[:, 0]])
+    sb = np.einsum("ij,ij->i", n, V[opp[b]] - V[k[:, 0]])
+    same = sa * sb > 0
+    bad.update(owner[a[same]].tolist())
+    bad.update(owner[b[same]].tolist())
+    return np.array(sorted(bad), np.int64)
+
+
+def _checked(vertices, tets, path) -> np.ndarray:
+    """`tets` of a mesh file oriented to positive volume, or a ValueError naming the folded ones."""
+    tets = _orient(vertices, tets)
+    bad = folded_tets(vertices, tets)
+    if len(bad):
+        raise ValueError(f"{path}: {len(bad)} tets overlap a neighbour (the mesh folds over itself: "
+                         f"inverted elements), e.g. tets {bad[:8].tolist()}; fix or re-mesh it")
+    return tets
+
+
 def grid_tets(shape: tuple[int, int, int], size: tuple[float, float, float], origin=(0.0, 0.0, 0.0)):
     """Vertices and tets of a box of `shape` cells (nx, ny, nz) and `size` (m)."""
     nx, ny, nz = shape
@@ -139,7 +177,7 @@ def load_mesh(path, max_volume: float | None = None, min_ratio: float | None = N
             remap = -np.ones(len(V), np.int64)
             remap[used] = np.arange(len(used))
             V, T = V[used], remap[T]
-        return TetMesh(V, _orient(V, T))  # tools differ in their orientation convention
+        return TetMesh(V, _checked(V, T, path))  # tools differ in their orientation convention
     raise ValueError(
         f"{path}: unsupported mesh format '{suffix}' (volume: {sorted(VOLUME_SUFFIXES)}, "
         f"surface: {sorted(SURFACE_SUFFIXES)})"
@@ -163,7 +201,7 @@ def _load_tetgen(stem: Path) -> TetMesh:
     el = rows(ele)
     m = int(el[0][0])
     tets = np.array([[int(v) for v in ln[1:5]] for ln in el[1 : m + 1]]) - first
-    return TetMesh(pts, _orient(pts, tets))
+    return TetMesh(pts, _checked(pts, tets, ele))
 
 
 def save_mesh(mesh: TetMesh, path, cell_data: dict | None = None) -> None:

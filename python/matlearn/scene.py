@@ -96,13 +96,106 @@ class Scene:
         """Load the recordings of a role ("train" or "test"), in scene order."""
         if role not in ROLES:
             raise ValueError(f"role must be one of {ROLES}, got {role!r}")
-        return [load_recording(p) for p in self.recording_paths(role)]
+        out = []
+        for p in self.recording_paths(role):
+            rec = load_recording(p)
+            self.check_recording(rec, f"{role} recording {Path(p).name}")
+            out.append(rec)
+        return out
+
+    def check_recording(self, rec: Recording, label: str) -> None:
+        """Raise a ValueError naming `label` when `rec`'s markers cannot be in this scene's units
+        (m): a marker's rest position farther than MARKER_DISTANCE_MAX x the object size from the
+        mesh, or, on a clamped body, a marker seen farther than MARKER_TRAVEL_MAX x the object
+        size from its rest position (e.g. markers in mm on a model in m)."""
+        if rec.num_markers == 0:
+            return
+        from .embedding import embed_points
+
+        size = self.object_size
+        far = np.asarray(embed_points(self.mesh, rec.marker_rest).distance, float)
+        if far.size and far.max() > MARKER_DISTANCE_MAX * size:
+            k = int(np.argmax(far))
+            raise ValueError(
+                f"{label}: marker {k}'s rest position {np.round(rec.marker_rest[k], 6).tolist()} lies "
+                f"{far[k]:.4g} m from the model's mesh (object size {size:.4g} m); marker_rest must be "
+                f"on or near the body's surface, in the scene's units (m)")
+        if len(self.fixed) and rec.markers is not None:
+            travel = np.linalg.norm(np.asarray(rec.markers, float) - np.asarray(rec.marker_rest, float)[None],
+                                    axis=2)
+            travel = np.where(np.isfinite(travel), travel, 0.0)
+            if travel.max(initial=0.0) > MARKER_TRAVEL_MAX * size:
+                t, k = np.unravel_index(int(np.argmax(travel)), travel.shape)
+                raise ValueError(
+                    f"{label}: marker {k} is seen {travel[t, k]:.4g} m from its rest position at "
+                    f"t = {rec.times[t]:.4g} s, {travel[t, k] / size:.3g}x the clamped object's size "
+                    f"({size:.4g} m): are markers and marker_rest in the same units (m)?")
+
+
+# the keys scene.toml may hold (formats.md, and matlearn's extensions in data.md); anything else
+# is reported (a misspelt optional key would otherwise silently fall back to its default)
+SCHEMA = {
+    "mesh": ("file", "max_volume", "min_ratio"),
+    "material": ("model", "youngs_modulus", "poisson_ratio", "density", "edits"),
+    "damping": ("alpha_mass", "alpha_stiffness", "mass_poly", "stiffness_poly"),
+    "boundary": ("fixed_box", "fixed_vertices"),
+    "simulation": ("time_step", "gravity"),
+    "recording": ("file", "role"),
+}
+# a marker's rest position farther than this x the object size from the mesh: other units
+MARKER_DISTANCE_MAX = 0.1
+# a clamped body's marker farther than this x the object size from its rest position: other units
+MARKER_TRAVEL_MAX = 5.0
+
+
+def _did_you_mean(name: str, options) -> str:
+    import difflib
+
+    close = difflib.get_close_matches(name, list(options), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def _check_keys(doc: dict, path: Path) -> None:
+    """Warn about every section and key scene.toml does not define (a typo such as
+    `alpha_stifness` or `[dampng]` would otherwise silently leave the default in place)."""
+    for name, value in doc.items():
+        if name not in SCHEMA:
+            warnings.warn(f"{path}: unknown {'section' if isinstance(value, (dict, list)) else 'key'} "
+                          f"'{name}' ignored{_did_you_mean(name, SCHEMA)}", stacklevel=3)
+            continue
+        tables = value if isinstance(value, list) else [value]
+        for table in tables:
+            if not isinstance(table, dict):
+                raise ValueError(f"{path}: '{name}' must be a table ([{name}])")
+            for key in table:
+                if key not in SCHEMA[name]:
+                    warnings.warn(f"{path}: unknown key '{key}' in [{name}] ignored"
+                                  f"{_did_you_mean(key, SCHEMA[name])}", stacklevel=3)
 
 
 def _require(table: dict, key: str, where: str, path: Path):
     if key not in table:
-        raise ValueError(f"{path}: missing key '{key}' in [{where}]")
+        raise ValueError(f"{path}: missing key '{key}' in [{where}]"
+                         f"{_did_you_mean(key, [k for k in table if k not in SCHEMA[where]])}")
     return table[key]
+
+
+def _number(value, key: str, where: str, path: Path) -> float:
+    """float(value), or a ValueError naming the key and the value."""
+    if isinstance(value, bool):
+        raise ValueError(f"{path}: [{where}] {key} must be a number, got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: [{where}] {key} must be a number, got {value!r}") from None
+
+
+def _numbers(value, key: str, where: str, path: Path, length: int | None = None) -> list:
+    """[float, ...] from a TOML array, or a ValueError naming the key."""
+    if not isinstance(value, (list, tuple)) or (length is not None and len(value) != length):
+        want = f"an array of {length} numbers" if length else "an array of numbers"
+        raise ValueError(f"{path}: [{where}] {key} must be {want}, got {value!r}")
+    return [_number(v, key, where, path) for v in value]
 
 
 def clamp_weakness(vertices, fixed) -> str | None:
@@ -135,30 +228,38 @@ def load_scene(path) -> Scene:
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{path}: invalid TOML ({err})") from err
     base = path.parent
+    _check_keys(doc, path)
     for section in ("mesh", "material", "simulation"):
         if section not in doc:
-            raise ValueError(f"{path}: missing section [{section}]")
+            raise ValueError(f"{path}: missing section [{section}]"
+                             f"{_did_you_mean(section, [k for k in doc if k not in SCHEMA])}")
 
     m = doc["mesh"]
     mesh_file = base / _require(m, "file", "mesh", path)
-    opts = {k: float(m[k]) for k in ("max_volume", "min_ratio") if k in m}
+    opts = {k: _number(m[k], k, "mesh", path) for k in ("max_volume", "min_ratio") if k in m}
     mesh = meshes.load_mesh(mesh_file, **opts)
 
     mat = doc["material"]
-    material = Material(
-        model=_require(mat, "model", "material", path),
-        youngs_modulus=float(_require(mat, "youngs_modulus", "material", path)),
-        poisson_ratio=float(_require(mat, "poisson_ratio", "material", path)),
-        density=float(_require(mat, "density", "material", path)),
-        edits=[tuple(e) for e in mat.get("edits", [])],
-    )
-    d = doc.get("damping", {})
-    damping = Damping(
-        alpha_mass=float(d.get("alpha_mass", 0.0)),
-        alpha_stiffness=float(d.get("alpha_stiffness", 0.0)),
-        mass_poly=[float(c) for c in d.get("mass_poly", [])],
-        stiffness_poly=[float(c) for c in d.get("stiffness_poly", [])],
-    )
+    try:
+        material = Material(
+            model=_require(mat, "model", "material", path),
+            youngs_modulus=_number(_require(mat, "youngs_modulus", "material", path), "youngs_modulus",
+                                   "material", path),
+            poisson_ratio=_number(_require(mat, "poisson_ratio", "material", path), "poisson_ratio",
+                                  "material", path),
+            density=_number(_require(mat, "density", "material", path), "density", "material", path),
+            edits=[tuple(_numbers(e, "edits", "material", path, 3)) for e in mat.get("edits", [])],
+        )
+        d = doc.get("damping", {})
+        damping = Damping(
+            alpha_mass=_number(d.get("alpha_mass", 0.0), "alpha_mass", "damping", path),
+            alpha_stiffness=_number(d.get("alpha_stiffness", 0.0), "alpha_stiffness", "damping", path),
+            mass_poly=_numbers(d.get("mass_poly", []), "mass_poly", "damping", path),
+            stiffness_poly=_numbers(d.get("stiffness_poly", []), "stiffness_poly", "damping", path),
+        )
+    except ValueError as err:
+        msg = str(err)
+        raise ValueError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
 
     b = doc.get("boundary", {})
     fixed_box = None
@@ -173,7 +274,16 @@ def load_scene(path) -> Scene:
         fpath = base / b["fixed_vertices"]
         if not fpath.exists():
             raise FileNotFoundError(f"{path}: fixed_vertices file not found: {fpath}")
-        fixed = np.atleast_1d(np.loadtxt(fpath, dtype=np.int64, comments="#"))
+        try:
+            fixed = np.atleast_1d(np.loadtxt(fpath, dtype=np.int64, comments="#"))
+        except ValueError as err:
+            raise ValueError(f"{path}: fixed_vertices file {fpath}: expected one integer vertex "
+                             f"index per line ({err})") from None
+        bad = fixed[(fixed < 0) | (fixed >= mesh.num_vertices)]
+        if len(bad):
+            raise ValueError(f"{path}: fixed_vertices file {fpath}: vertex index {int(bad[0])} is out "
+                             f"of range; the mesh has {mesh.num_vertices} vertices (0-based indices "
+                             f"0..{mesh.num_vertices - 1})")
     elif b:
         raise ValueError(f"{path}: [boundary] needs fixed_box or fixed_vertices")
     else:
@@ -183,8 +293,8 @@ def load_scene(path) -> Scene:
         warnings.warn(f"{path}: [boundary] {weak}", stacklevel=2)
 
     s = doc["simulation"]
-    time_step = float(_require(s, "time_step", "simulation", path))
-    gravity = tuple(float(x) for x in s.get("gravity", DEFAULT_GRAVITY))
+    time_step = _number(_require(s, "time_step", "simulation", path), "time_step", "simulation", path)
+    gravity = tuple(_numbers(s.get("gravity", DEFAULT_GRAVITY), "gravity", "simulation", path, 3))
 
     recs = []
     for i, r in enumerate(doc.get("recording", [])):
@@ -193,7 +303,11 @@ def load_scene(path) -> Scene:
         rp = base / r["file"]
         if not rp.exists():
             raise FileNotFoundError(f"{path}: recording file not found: {rp}")
-        recs.append((rp, r.get("role", "train")))
+        role = r.get("role", "train")
+        if role not in ROLES:
+            raise ValueError(f"{path}: [[recording]] #{i} ({r['file']}): role must be one of {ROLES}, "
+                             f"got {role!r}{_did_you_mean(str(role), ROLES)}")
+        recs.append((rp, role))
     return Scene(
         mesh=mesh,
         material=material,

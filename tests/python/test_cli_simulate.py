@@ -105,6 +105,7 @@ def test_an_existing_recording_is_never_overwritten_silently(scene_path, tmp_pat
         (["--markers", "nope.txt"], "not found"),
         (["--replay", "3"], "--replay 3"),
         (["--model", "no_such_run"], "model run directory not found"),
+        (["--load-box", *TIP_BOX], "give --load FX FY FZ too"),
     ],
 )
 def test_errors_are_reported(scene_path, tmp_path, capsys, extra, message):
@@ -117,3 +118,42 @@ def test_errors_are_reported(scene_path, tmp_path, capsys, extra, message):
 def test_missing_scene(tmp_path, capsys):
     assert cli.main(["simulate", str(tmp_path / "none.toml"), "--out", str(tmp_path / "x.npz")]) == 2
     assert "scene file not found" in capsys.readouterr().err
+
+
+def test_model_and_vtu_mistakes_are_reported(scene_path, tmp_path, capsys):
+    """--model given the model file instead of its run folder, a run folder whose model.npz is
+    damaged (a killed copy), and a --vtu folder that already holds a series: each a clear error,
+    no traceback, nothing overwritten."""
+    path, _ = scene_path
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "model.npz").write_bytes(b"")
+    (run / "model.json").write_text('{"use": "rbf"}')
+    out = str(tmp_path / "x.npz")
+    assert cli.main(["simulate", str(path), "--out", out, "--quiet", "--model", str(run / "model.npz")]) == 2
+    assert "is a file; pass the run folder" in capsys.readouterr().err
+    assert cli.main(["simulate", str(path), "--out", out, "--quiet", "--model", str(run)]) == 2
+    assert "the learned model cannot be read" in capsys.readouterr().err
+    vtu = tmp_path / "vtu"
+    args = ["simulate", str(path), "--quiet", "--duration", "0.01", "--all-surface", "--vtu", str(vtu)]
+    assert cli.main([*args, "--out", out]) == 0
+    first = sorted(p.name for p in vtu.iterdir())
+    assert cli.main([*args, "--out", str(tmp_path / "y.npz")]) == 2
+    assert "already holds a time series" in capsys.readouterr().err
+    assert cli.main([*args[:4], "0.005", *args[5:], "--out", str(tmp_path / "y.npz"), "--force"]) == 0
+    second = sorted(p.name for p in vtu.iterdir())
+    assert len(second) < len(first) and set(second) <= set(first)  # no frame of the older series left
+
+
+def test_version_and_out_paths_that_are_files(scene_path, tmp_path, capsys):
+    path, _ = scene_path
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("matlearn ")
+    f = tmp_path / "afile"
+    f.write_text("x")
+    for cmd in ("learn", "diagnose", "track"):
+        assert cli.main([cmd, str(path), "--out", str(f)]) == 2
+        assert f"--out {f} is a file" in capsys.readouterr().err, cmd
+    assert cli.main(["track", str(path), "--out", str(tmp_path / "t")]) == 2
+    assert "no recording is point clouds only" in capsys.readouterr().err

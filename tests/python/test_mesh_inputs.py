@@ -73,3 +73,20 @@ def test_gmsh_second_order_mesh_with_boundary_triangles(tmp_path):
     assert m.num_vertices == len(V) and m.num_tets == len(T)
     np.testing.assert_allclose(np.sort(m.vertices, axis=0), np.sort(V, axis=0))
     np.testing.assert_allclose(np.sum(m.rest_volumes), 0.06 * 0.04 * 0.02, rtol=1e-12)
+
+
+@pytest.mark.parametrize("suffix", [".msh", ".vtu"])
+def test_a_folded_mesh_is_refused(tmp_path, suffix):
+    """A vertex pushed through its neighbours makes tets overlap; re-orienting each negative tet
+    (as done for files of another orientation convention) would hide that, so loading names them."""
+    m = meshes.bar(0.1, 0.02, 0.02, (8, 2, 2))
+    V, T = np.asarray(m.vertices).copy(), np.asarray(m.tets)
+    assert len(meshes.folded_tets(V, T)) == 0
+    c = int(np.argmin(np.linalg.norm(V - V.mean(axis=0), axis=1)))  # an interior vertex
+    V[c, 0] += 0.03  # 2.4 cells along the bar
+    meshio.write(tmp_path / f"folded{suffix}", meshio.Mesh(V, [("tetra", T)]))
+    with pytest.raises(ValueError, match=r"tets overlap a neighbour \(the mesh folds over itself"):
+        meshes.load_mesh(tmp_path / f"folded{suffix}")
+    bad = meshes.folded_tets(V, meshes._orient(V, T))
+    touching = np.flatnonzero(np.any(T == c, axis=1))
+    assert len(bad) and set(bad) <= set(touching) | set(np.flatnonzero(np.any(np.isin(T, T[touching]), axis=1)))

@@ -1,5 +1,6 @@
 """scene.toml (docs/formats.md): the documented example parses exactly; roundtrip; clear errors."""
 import textwrap
+import warnings
 
 import meshio
 import numpy as np
@@ -200,3 +201,68 @@ def test_a_clamp_that_cannot_hold_the_body_warns(example_dir):
         "fixed_box = [[-1.0, -1.0, -1.0], [0.001, 1.0, 1.0]]", 'fixed_vertices = "fixed.txt"'))
     with pytest.warns(UserWarning, match="clamps only 1 vertex"):
         load_scene(d / "scene.toml")
+
+
+@pytest.mark.parametrize(
+    "old, new, match",
+    [
+        ("[damping]", "[dampng]", r"unknown section 'dampng' ignored \(did you mean 'damping'\?\)"),
+        ("alpha_stiffness = 0.01", "alpha_stifness = 0.01",
+         r"unknown key 'alpha_stifness' in \[damping\] ignored \(did you mean 'alpha_stiffness'\?\)"),
+        ("gravity = [0.0, -9.81, 0.0]", "gravty = [0.0, -9.81, 0.0]", r"did you mean 'gravity'"),
+        ('role = "test"', 'rol = "test"', r"unknown key 'rol' in \[recording\]"),
+    ],
+)
+def test_misspelt_keys_and_sections_are_reported(example_dir, old, new, match):
+    """A misspelt optional key silently keeps its default (no damping, the default gravity, a
+    test recording learned from as train): loading the scene says so, naming the closest key."""
+    d, _ = example_dir
+    (d / "scene.toml").write_text(FORMATS_EXAMPLE.replace(old, new))
+    with pytest.warns(UserWarning, match=match):
+        load_scene(d / "scene.toml")
+
+
+@pytest.mark.parametrize(
+    "old, new, match",
+    [
+        ("youngs_modulus = 1.0e5", 'youngs_modulus = "abc"', r"\[material\] youngs_modulus must be a number, got 'abc'"),
+        ("youngs_modulus = 1.0e5", "youngs_modulus = -1.0e5", r"youngs_modulus must be > 0 \(Pa\), got -100000.0"),
+        ("alpha_mass = 0.0", "alpha_mass = -1.0", "alpha_mass -1.0"),
+        ("time_step = 0.001", "time_step = true", r"\[simulation\] time_step must be a number"),
+        ('role = "test"', 'role = "tset"', r"role must be one of \('train', 'test'\), got 'tset' \(did you mean 'test'\?\)"),
+        ("youngs_modulus = 1.0e5    # Pa\n", "young_modulus = 1.0e5\n", r"missing key 'youngs_modulus' in \[material\] \(did you mean 'young_modulus'\?\)"),
+    ],
+)
+def test_bad_values_name_their_key(example_dir, old, new, match):
+    d, _ = example_dir
+    (d / "scene.toml").write_text(FORMATS_EXAMPLE.replace(old, new))
+    with pytest.raises(ValueError, match=match), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the misspelt key's own warning
+        load_scene(d / "scene.toml")
+
+
+def test_fixed_vertex_out_of_range_is_named(example_dir):
+    d, mesh = example_dir
+    (d / "fixed.txt").write_text("0\n500\n")
+    (d / "scene.toml").write_text(FORMATS_EXAMPLE.replace(
+        "fixed_box = [[-1.0, -1.0, -1.0], [0.001, 1.0, 1.0]]", 'fixed_vertices = "fixed.txt"'))
+    with pytest.raises(ValueError, match=rf"vertex index 500 is out of range; the mesh has {mesh.num_vertices}"):
+        load_scene(d / "scene.toml")
+
+
+def test_markers_in_other_units_are_named(example_dir):
+    """Markers whose rest positions lie off the mesh, or that a clamped body would have to travel
+    far beyond its size to reach (markers in mm, marker_rest in m), stop with an error naming the
+    recording and the likely cause instead of a failed static solve or a silent wrong fit."""
+    d, mesh = example_dir
+    sc = load_scene(d / "scene.toml")
+    rest = np.asarray(mesh.vertices)[[5, 6, 7]]
+    near = Recording([0.0, 0.01], rest, np.stack([rest, rest + 1e-3]))
+    sc.check_recording(near, "ok")  # a millimetre of motion on a 0.2 m bar
+    with pytest.raises(ValueError, match=r"mm: marker 0's rest position .* lies .* from the model's mesh"):
+        sc.check_recording(Recording([0.0, 0.01], 1e3 * rest, np.stack([1e3 * rest] * 2)), "mm")
+    with pytest.raises(ValueError, match=r"mixed: marker \d is seen .* from its rest position .* same units"):
+        sc.check_recording(Recording([0.0, 0.01], rest, np.stack([rest, 1e3 * rest])), "mixed")
+    save_recording(Recording([0.0, 0.01], rest, np.stack([rest, 1e3 * rest])), d / "train_0.npz")
+    with pytest.raises(ValueError, match="train recording train_0.npz: marker"):
+        sc.recordings_with_role("train")

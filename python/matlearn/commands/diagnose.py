@@ -12,7 +12,8 @@ def register(subparsers):
     )
     p.add_argument("scene", help="scene.toml")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="random seed (k-means regions and patches); the same seed gives the same result")
     p.add_argument("--no-report", action="store_true", help="skip report.html and .vtu")
     p.add_argument("--residual", choices=("constrained", "spacetime"), default="constrained",
                    help="source of the control forces mapped in 'where' (spacetime: the learning "
@@ -56,6 +57,8 @@ def check_out(out, resume: bool, force: bool) -> None:
     from ..diagnosis.simcache import FOLDER
 
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; diagnose writes a folder (diagnosis.json, report.html, ...)")
     if force or resume:
         return
     if (out / FOLDER).exists():
@@ -79,11 +82,17 @@ def _run(args):
                  resume=args.resume)
     print(f"verdict: {', '.join(r['verdict']) or '[] (within noise and discretisation)'}")
     d, gb = r.get("discretisation") or {}, r["gap_before"]
+    what = "held-out gap" if r.get("held_out") else "gap on the train recordings (no test recording)"
     if d.get("gap_with_offset"):
-        print(f"held-out gap {gb['max_error_pct']:.2f} %; with the mesh's stiffness factor E x "
+        print(f"{what} {gb['max_error_pct']:.2f} %; with the mesh's stiffness factor E x "
               f"{d['stiffness_factor']:.3g} alone (no effect) {d['gap_with_offset']['max_error_pct']:.2f} %"
               + (f"; on the once-refined mesh {d['gap_refined_mesh']['max_error_pct']:.2f} %"
                  if d.get("gap_refined_mesh") else ""))
+        mesh_only = [g["max_error_pct"] for g in (d.get("gap_with_offset"), d.get("gap_refined_mesh")) if g]
+        if not r["verdict"] and min(mesh_only) < 0.5 * gb["max_error_pct"]:
+            print("most of the gap is the mesh's discretisation: refine the mesh (report.html, Mesh)")
+    else:
+        print(f"{what} {gb['max_error_pct']:.2f} %")
     dec = r.get("decay") or {}
     if dec.get("ratio") is not None:
         print(f"decay: x{dec['ratio']:.2f} the nominal damping law's at the recorded frequencies"

@@ -41,7 +41,8 @@ def register(subparsers) -> None:
     p.add_argument("--fixed-box", nargs=6, type=float, required=True, metavar="X",
                    help="clamp box x0 y0 z0 x1 y1 z1 (m, rest frame)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--model", default="corotated", help="nominal material model")
+    p.add_argument("--model", default="corotated", choices=("corotated", "neo_hookean", "stvk"),
+                   help="nominal material law (default corotated)")
     p.add_argument("--youngs-modulus", type=float, default=1e5, help="Pa")
     p.add_argument("--poisson-ratio", type=float, default=0.4)
     p.add_argument("--density", type=float, default=1000.0, help="kg/m^3")
@@ -53,5 +54,5 @@ def register(subparsers) -> None:
     p.add_argument("--max-volume", type=float, default=None, help="TetGen volume bound (m^3)")
     p.add_argument("--no-track", action="store_true", help="only write the cloud scene")
     p.add_argument("--force", action="store_true", help="overwrite a scene already in --out")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)

@@ -1,5 +1,5 @@
 """`matlearn learn SCENE --out RUN`: learn an elastic + damping correction from the scene's train
-recordings (method.md sections 4-6), score it on the test recordings, distil it into an MLP, and
+recordings (sparse reduced space-time optimisation, RBF stress fitting), score it on the test recordings, distil it into an MLP, and
 write RUN/model.npz + model.json (for `matlearn simulate --model RUN`), metrics.json,
 convergence.png and error_histograms.png.
 
@@ -9,7 +9,7 @@ RUN/tracked/ so --resume does not track again) and learned through their tracked
 
 `--start best` learns from the nominal and from the fitted parameters (RUN/start_nominal,
 RUN/start_baseline, each with its own metrics.json and checkpoints) and keeps the model whose
-learned train error is lower (RUN/best_start.json; learning/start.py)."""
+learned train error is lower (RUN/best_start.json)."""
 from __future__ import annotations
 
 import json
@@ -26,8 +26,13 @@ def run(args) -> int:
 
     scene = load_scene(args.scene)
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; learn writes a run folder (model, metrics, plots)")
     if out.exists() and any(out.iterdir()) and not args.resume and not args.force:
         raise ValueError(f"{out} exists and is not empty; use --resume to continue it or --force")
+    if args.resume and not (out.is_dir() and any(out.iterdir())):
+        print(f"learn: nothing to resume in {out} (no earlier run there); starting a new run",
+              file=sys.stderr)
     opts = LearnOptions(iterations=args.iterations, lam=args.lam, modes=args.modes,
                         centers=args.centers, seed=args.seed,
                         refresh_correspondences=args.refresh_correspondences,
@@ -107,9 +112,10 @@ def register(subparsers) -> None:
                    help="an update that lowers the train error is also tried at these multiples of "
                         "itself (e.g. 2 4), each kept while it lowers the train error further: fewer "
                         "iterations, but the held-out error can rise (docs/results.md, Learning); default none")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="random seed (k-means centres, MLP training); the same seed gives the same model")
     p.add_argument("--refresh-correspondences", type=int, default=0, metavar="N",
                    help="point clouds: rounds of re-estimating the correspondences at the space-time "
                         "trajectory and solving again (default 0: the tracker's)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress output (the final summary line only)")
     p.set_defaults(func=run)

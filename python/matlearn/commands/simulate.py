@@ -10,12 +10,14 @@ from .. import meshes, replay
 from ..embedding import embed_points
 from ..progress import ProgressBar
 from ..recording import Recording, load_recording, save_recording
-from ..scene import load_scene, vertices_in_box
+from ..scene import MARKER_DISTANCE_MAX, load_scene, vertices_in_box
 
 
 def load_correction(run_dir, scene):
     """The learned model of a `matlearn learn` run directory on `scene` (its correction, and the
     fitted base parameters when the run started from the baseline: matlearn.learning.io.scene_model)."""
+    if Path(run_dir).is_file():
+        raise ValueError(f"--model {run_dir} is a file; pass the run folder that `matlearn learn --out` wrote")
     if not Path(run_dir).is_dir():
         raise FileNotFoundError(f"model run directory not found: {run_dir}")
     try:
@@ -71,6 +73,12 @@ def _marker_points(scene, args) -> np.ndarray:
         pts = np.atleast_2d(np.loadtxt(p, comments="#"))
         if pts.shape[1] != 3:
             raise ValueError(f"--markers: expected 3 columns (x y z rest positions), got {pts.shape}")
+        far = np.asarray(embed_points(scene.mesh, pts).distance, float)
+        size = scene.object_size
+        if far.size and far.max() > MARKER_DISTANCE_MAX * size:
+            k = int(np.argmax(far))
+            raise ValueError(f"--markers: point {k} {pts[k].tolist()} lies {far[k]:.4g} m from the mesh "
+                             f"(object size {size:.4g} m); give rest positions on or near the surface, in m")
         return pts
     if not args.all_surface:
         for path in scene.recording_paths():
@@ -87,6 +95,11 @@ def run(args) -> int:
         mine = any(out.resolve() == Path(p).resolve() for p in scene.recording_paths())
         raise ValueError(f"--out {out} exists" + (" (it is one of the scene's recordings)" if mine else "")
                          + "; use --force to overwrite it")
+    if args.load_box is not None and args.load is None:
+        raise ValueError("--load-box selects where --load acts; give --load FX FY FZ too")
+    vtu = Path(args.vtu) if args.vtu else None
+    if vtu is not None and (vtu / "frame.pvd").exists() and not args.force:
+        raise ValueError(f"--vtu {vtu} already holds a time series (frame.pvd); use --force to replace it")
     model = load_correction(args.model, scene) if args.model else scene.model()
     bar = ProgressBar("simulate", enabled=not args.quiet)
     points = _marker_points(scene, args)  # before simulating: bad marker input fails fast
@@ -95,6 +108,7 @@ def run(args) -> int:
         if not 0 <= args.replay < len(paths):
             raise ValueError(f"--replay {args.replay}: the scene has {len(paths)} recordings")
         src = load_recording(paths[args.replay])
+        scene.check_recording(src, f"recording {args.replay} ({Path(paths[args.replay]).name})")
         sim_t, X, _ = replay.simulate_recording(scene, model, src, progress=bar)
         times, at_rest = src.times, src.at_rest_initially
         if not (args.markers or args.all_surface):
@@ -120,7 +134,10 @@ def run(args) -> int:
         from ..vtk_output import write_time_series
 
         frames = replay.interpolate_frames(sim_t, X, times)
-        pvd = write_time_series(args.vtu, scene.mesh, times, frames)
+        if (vtu / "frame.pvd").exists():  # replaced (--force): no frames of the older series stay
+            for stale in vtu.glob("frame_*.vtu"):
+                stale.unlink()
+        pvd = write_time_series(vtu, scene.mesh, times, frames)
         print(f"wrote {pvd} ({len(times)} frames)")
     return 0
 
@@ -153,6 +170,6 @@ def register(subparsers) -> None:
     g.add_argument("--all-surface", action="store_true", help="a marker at every surface vertex")
     p.add_argument("--frame-rate", type=float, help="output frames per second (default: every step)")
     p.add_argument("--vtu", metavar="DIR", help="also write a ParaView time series (.pvd + .vtu)")
-    p.add_argument("--force", action="store_true", help="overwrite an existing --out")
+    p.add_argument("--force", action="store_true", help="overwrite an existing --out (and a --vtu series)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

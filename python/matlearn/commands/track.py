@@ -16,7 +16,20 @@ def run(args) -> int:
 
     opts = TrackOptions(sigma=args.sigma, beta=args.beta, gamma=args.gamma,
                         em_iterations=args.em_iterations, data_weight=args.data_weight)
+    from ..clouds.prepare import is_cloud_only
+    from ..recording import load_recording
+    from ..scene import load_scene
+
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; track writes a folder")
+    if (out / "scene.toml").exists() and not args.force:
+        raise ValueError(f"{out} holds an earlier tracking (scene.toml); use --force to overwrite it "
+                         "or choose another --out")
+    scene = load_scene(args.scene)
+    if not any(is_cloud_only(load_recording(p)) for p, _ in scene.recordings):
+        raise ValueError(f"{args.scene}: no recording is point clouds only; nothing to track "
+                         "(learn and diagnose use its markers directly)")
     path = markers_scene(args.scene, out, opts, progress=not args.quiet, write_surfaces=not args.no_ply,
                          write_vtu=args.vtu)
     print(f"tracked scene written to {path} (run `matlearn learn {path} --out RUN`)", file=sys.stderr)
@@ -36,5 +49,6 @@ def register(subparsers) -> None:
     p.add_argument("--data-weight", type=float, default=0.1, help="data vs elastic stiffness")
     p.add_argument("--vtu", action="store_true", help="also write a ParaView .vtu/.pvd series")
     p.add_argument("--no-ply", action="store_true", help="do not write per-frame surface PLYs")
+    p.add_argument("--force", action="store_true", help="overwrite an earlier tracking in --out")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)

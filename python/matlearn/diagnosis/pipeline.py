@@ -472,7 +472,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
 
         rep.write_report(out, P, ctx, result, shares, field, fits, selected, patch_theta, labels)
     say(f"wrote {out / 'diagnosis.json'} ({P.simulations} simulations"
-        + (f", {P.store.hits} of them from the interrupted run)" if resume else ")"))
+        + (f", {P.store.hits} of them from the interrupted run)" if resume and P.store.resumed else ")"))
     P.store.remove()
     return result
 

@@ -248,30 +248,19 @@ class Problem:
                      s.gravity, list(s.recordings), s.path, fixed_box=s.fixed_box)
 
 
-# a marker farther than this fraction of the object size from the model's mesh is not a
-# surface marker of this body (another unit, another object, a misplaced rest position)
-MARKER_DISTANCE_MAX = 0.1
 
 
 def usable_recording(rec: Recording, scene: Scene, label: str) -> Recording:
     """`rec` checked for what the diagnosis needs, with clear errors naming `label`:
-    * every marker's rest position lies on or near the model's mesh (within
-      MARKER_DISTANCE_MAX of the object size: markers in other units than the scene's are
-      caught here instead of as a failed static solve);
+    * its markers are in the scene's units (`Scene.check_recording`: rest positions on or near
+      the mesh, a clamped body's markers near their rest positions; markers in other units
+      than the scene's are caught here instead of as a failed static solve);
     * frames before the first one in which any marker is seen are dropped when the recording
       does not say it starts at rest and has no drive points: its initial state is unknown
       and is estimated from the markers anyway (formats.md), so it starts where they are
       first seen;
     * at least 2 frames with seen markers remain (a motion to compare against)."""
-    emb = embed_points(scene.mesh, rec.marker_rest)
-    size = scene.object_size
-    far = np.asarray(emb.distance, float)
-    if far.size and far.max() > MARKER_DISTANCE_MAX * size:
-        k = int(np.argmax(far))
-        raise ValueError(
-            f"{label}: marker {k}'s rest position {np.round(rec.marker_rest[k], 6).tolist()} lies "
-            f"{far[k]:.4g} m from the model's mesh (object size {size:.4g} m); marker_rest must be "
-            f"on or near the body's surface, in the scene's units (m)")
+    scene.check_recording(rec, label)
     seen = rec.seen.any(axis=1)
     if not seen.any():
         raise ValueError(f"{label}: no marker is seen in any frame")

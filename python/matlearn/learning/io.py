@@ -10,6 +10,7 @@ correction was learned on (`base_material` / `base_damping` in model.json);
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -72,18 +73,25 @@ def load_model(run_dir, kind: str | None = None):
     """The learned correction of run `run_dir` (a folder written by `matlearn learn`).
     kind: "rbf", "mlp" or None (the run's choice in model.json)."""
     run = Path(run_dir)
+    if run.is_file():
+        raise ValueError(f"{run} is a file; pass the run folder that `matlearn learn --out` wrote "
+                         f"(it holds {MODEL_NPZ} and {MODEL_JSON})")
     if not (run / MODEL_NPZ).exists() or not (run / MODEL_JSON).exists():
         raise FileNotFoundError(f"{run}: not a learned-model folder (no {MODEL_NPZ}/{MODEL_JSON})")
-    info = json.loads((run / MODEL_JSON).read_text())
-    kind = kind or info.get("use", "rbf")
-    if kind == "rbf":
-        return load_rbf(run).correction()
-    if kind == "mlp":
+    if kind not in (None, "rbf", "mlp"):
+        raise ValueError(f"kind must be 'rbf' or 'mlp', got {kind!r}")
+    try:
+        info = json.loads((run / MODEL_JSON).read_text())
+        kind = kind or info.get("use", "rbf")
+        if kind == "rbf":
+            return load_rbf(run).correction()
         # the MLP reproduces the RBF's (dPh, dalpha); how the damping acts is the RBF's too
         c = mlp_correction(load_mlp(run))
         c.tangent_damping = load_rbf(run).tangent_damping
         return c
-    raise ValueError(f"kind must be 'rbf' or 'mlp', got {kind!r}")
+    except (OSError, EOFError, KeyError, json.JSONDecodeError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{run}: the learned model cannot be read ({type(err).__name__}: {err}); "
+                         f"it is damaged or incomplete (learn again, or --resume the run)") from None
 
 
 def scene_model(scene, run_dir, kind: str | None = None):
@@ -92,7 +100,7 @@ def scene_model(scene, run_dir, kind: str | None = None):
     the learned correction."""
     from .start import damping_from_dict, material_from_dict
 
-    correction = load_model(run_dir, kind)
+    correction = load_model(run_dir, kind)  # checks the folder and its files
     info = json.loads((Path(run_dir) / MODEL_JSON).read_text())
     mat = material_from_dict(info["base_material"]) if info.get("base_material") else None
     damp = damping_from_dict(info["base_damping"]) if info.get("base_damping") else None
