@@ -4,6 +4,8 @@ All lengths in metres. Every builder returns a :class:`TetMesh` (the C++ mesh wi
 """
 from __future__ import annotations
 
+import contextlib
+import io
 from pathlib import Path
 
 import numpy as np
@@ -163,7 +165,8 @@ def load_mesh(path, max_volume: float | None = None, min_ratio: float | None = N
     if suffix in VOLUME_SUFFIXES:
         import meshio
 
-        m = meshio.read(path)
+        with contextlib.redirect_stdout(io.StringIO()):  # meshio's gmsh reader prints a blank line
+            m = meshio.read(path)
         # quadratic tets (gmsh/VTK second order): their first four nodes are the corners
         tets = [c.data[:, :4] for c in m.cells if c.type in ("tetra", "tetra10")]
         if not tets:

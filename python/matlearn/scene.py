@@ -120,6 +120,12 @@ class Scene:
                 f"{label}: marker {k}'s rest position {np.round(rec.marker_rest[k], 6).tolist()} lies "
                 f"{far[k]:.4g} m from the model's mesh (object size {size:.4g} m); marker_rest must be "
                 f"on or near the body's surface, in the scene's units (m)")
+        rest = np.asarray(rec.marker_rest, float)
+        spread = float(np.linalg.norm(np.ptp(rest, axis=0))) if len(rest) >= 4 else None
+        if spread is not None and spread < MARKER_SPREAD_MIN * size:
+            warnings.warn(f"{label}: its {len(rest)} markers span {spread:.4g} m, {size / max(spread, 1e-300):.3g}x "
+                          f"less than the object ({size:.4g} m): are the mesh and the recording in the same "
+                          "units (m)?", stacklevel=2)
         if len(self.fixed) and rec.markers is not None:
             travel = np.linalg.norm(np.asarray(rec.markers, float) - np.asarray(rec.marker_rest, float)[None],
                                     axis=2)
@@ -146,6 +152,8 @@ SCHEMA = {
 MARKER_DISTANCE_MAX = 0.1
 # a clamped body's marker farther than this x the object size from its rest position: other units
 MARKER_TRAVEL_MAX = 5.0
+# 4 or more markers spanning less than this x the object size: warned (a mesh in mm, markers in m)
+MARKER_SPREAD_MIN = 0.01
 
 
 def _did_you_mean(name: str, options) -> str:

@@ -263,6 +263,11 @@ def test_markers_in_other_units_are_named(example_dir):
         sc.check_recording(Recording([0.0, 0.01], 1e3 * rest, np.stack([1e3 * rest] * 2)), "mm")
     with pytest.raises(ValueError, match=r"mixed: marker \d is seen .* from its rest position .* same units"):
         sc.check_recording(Recording([0.0, 0.01], rest, np.stack([rest, 1e3 * rest])), "mixed")
+    # markers in m on a mesh in mm (here: the markers shrunk 1000x) sit near the mesh but span
+    # a thousandth of it: a warning (a few markers on one small patch are legitimate)
+    tiny = 1e-3 * np.asarray(mesh.vertices)[:6]
+    with pytest.warns(UserWarning, match=r"6 markers span .* less than the object .* same units"):
+        sc.check_recording(Recording([0.0, 0.01], tiny, np.stack([tiny, tiny])), "tiny")
     save_recording(Recording([0.0, 0.01], rest, np.stack([rest, 1e3 * rest])), d / "train_0.npz")
     with pytest.raises(ValueError, match="train recording train_0.npz: marker"):
         sc.recordings_with_role("train")
