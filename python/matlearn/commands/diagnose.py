@@ -88,9 +88,11 @@ def _run(args):
               f"{d['stiffness_factor']:.3g} alone (no effect) {d['gap_with_offset']['max_error_pct']:.2f} %"
               + (f"; on the once-refined mesh {d['gap_refined_mesh']['max_error_pct']:.2f} %"
                  if d.get("gap_refined_mesh") else ""))
-        mesh_only = [g["max_error_pct"] for g in (d.get("gap_with_offset"), d.get("gap_refined_mesh")) if g]
-        if not r["verdict"] and min(mesh_only) < 0.5 * gb["max_error_pct"]:
-            print("most of the gap is the mesh's discretisation: refine the mesh (report.html, Mesh)")
+        from ..diagnosis.report import mesh_advice
+
+        advice = mesh_advice(r)
+        if advice:
+            print(f"{advice} (report.html, Mesh)")
     else:
         print(f"{what} {gb['max_error_pct']:.2f} %")
     dec = r.get("decay") or {}

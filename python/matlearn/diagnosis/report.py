@@ -115,11 +115,30 @@ def mesh_paragraph(result) -> str:
     if gr:
         text += (f" The nominal material on the once-refined mesh (each tet split into 8) gives max "
                  f"{gr['max_error_pct']:.2f} %.")
-    best = min([x["max_error_pct"] for x in (g, gr) if x] or [gb["max_error_pct"]])
-    if not result["verdict"] and best < 0.5 * gb["max_error_pct"]:
-        text += (" Most of the gap is the mesh's discretisation: refine the mesh"
-                 + (" (or scale E by that factor on it)." if g and g["max_error_pct"] <= best else "."))
+    advice = mesh_advice(result)
+    if advice:
+        text += " " + advice[0].upper() + advice[1:] + "."
     return f"<p><b>Mesh:</b> {html.escape(text)}</p>"
+
+
+def mesh_advice(result) -> str | None:
+    """What to do about the mesh when the verdict is empty and the mesh alone accounts for most
+    of the gap (None otherwise): refine it where the once-refined mesh halves the gap; where only
+    the stiffness factor does (the refined mesh does not), the gap is a uniform stiffness or
+    density change that this mesh's error cannot be told from."""
+    d, gb = result.get("discretisation") or {}, result["gap_before"]["max_error_pct"]
+    if result["verdict"] or not gb:
+        return None
+    g, gr = d.get("gap_with_offset"), d.get("gap_refined_mesh")
+    if gr and gr["max_error_pct"] < 0.5 * gb:
+        return "most of the gap is the mesh's discretisation: refine the mesh"
+    if g and g["max_error_pct"] < 0.5 * gb:
+        if gr:
+            return (f"E x {d['stiffness_factor']:.3g} on this mesh removes most of the gap but the once-refined "
+                    "mesh does not: a uniform stiffness or density change of the material that this mesh's "
+                    "discretisation error cannot tell from its own; diagnosing on a finer mesh can")
+        return f"most of the gap is the mesh's discretisation: refine the mesh (or scale E by {d['stiffness_factor']:.3g} on it)"
+    return None
 
 
 def decay_paragraph(result) -> str:
