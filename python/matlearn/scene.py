@@ -108,6 +108,10 @@ class Scene:
         (m): a marker's rest position farther than MARKER_DISTANCE_MAX x the object size from the
         mesh, or, on a clamped body, a marker seen farther than MARKER_TRAVEL_MAX x the object
         size from its rest position (e.g. markers in mm on a model in m)."""
+        steps = float(rec.times[-1] - rec.times[0]) / self.time_step
+        if steps > MAX_STEPS_WARN:
+            warnings.warn(f"{label}: spans {rec.times[-1] - rec.times[0]:.4g} s, {steps:.3g} steps of the scene's "
+                          f"time step ({self.time_step:.3g} s): are its times in seconds?", stacklevel=2)
         if rec.num_markers == 0:
             return
         from .embedding import embed_points
@@ -154,6 +158,8 @@ MARKER_DISTANCE_MAX = 0.1
 MARKER_TRAVEL_MAX = 5.0
 # 4 or more markers spanning less than this x the object size: warned (a mesh in mm, markers in m)
 MARKER_SPREAD_MIN = 0.01
+# a recording longer than this many time steps: warned (times in ms read as s)
+MAX_STEPS_WARN = 1e5
 
 
 def _did_you_mean(name: str, options) -> str:

@@ -268,6 +268,8 @@ def test_markers_in_other_units_are_named(example_dir):
     tiny = 1e-3 * np.asarray(mesh.vertices)[:6]
     with pytest.warns(UserWarning, match=r"6 markers span .* less than the object .* same units"):
         sc.check_recording(Recording([0.0, 0.01], tiny, np.stack([tiny, tiny])), "tiny")
+    with pytest.warns(UserWarning, match=r"spans 250 s, 2.5e\+05 steps .* are its times in seconds"):
+        sc.check_recording(Recording([0.0, 250.0], rest, np.stack([rest, rest])), "ms")  # 250 ms as s
     save_recording(Recording([0.0, 0.01], rest, np.stack([rest, 1e3 * rest])), d / "train_0.npz")
     with pytest.raises(ValueError, match="train recording train_0.npz: marker"):
         sc.recordings_with_role("train")
