@@ -164,3 +164,21 @@ def test_correction_with_wrong_output_shape_is_a_value_error():
     model.correction = _core.correction.PythonCorrection(lambda Fh, Fhdot: (np.zeros((2, 3)), None, None, None))
     with pytest.raises(ValueError, match="correction dPh: expected shape"):
         model.forces(mesh.vertices, np.zeros_like(mesh.vertices))
+
+
+def test_markers_only_on_the_clamp_are_named():
+    """Markers whose nearest vertices are all clamped (markers on the clamp, or in other units
+    than a mesh whose clamp holds its origin) leave nothing to follow: a clear error instead of
+    the integrator's internal 'call set_prescribed() first'."""
+    from matlearn.learning.initial import initial_trajectory
+    from matlearn.recording import Recording
+    from matlearn.scene import Scene, vertices_in_box
+
+    mesh = meshes.bar(0.2, 0.04, 0.04, cells=(4, 1, 1))
+    box = [[-1, -1, -1], [1e-3, 1, 1]]
+    scene = Scene(mesh, Material("corotated", 1e5, 0.4, 1000.0), fixed=vertices_in_box(mesh.vertices, box),
+                  fixed_box=box)
+    rest = np.asarray(mesh.vertices)[scene.fixed[:3]]
+    rec = Recording([0.0, 0.01], rest, np.stack([rest, rest]), at_rest_initially=True)
+    with pytest.raises(ValueError, match="every marker's nearest mesh vertex is clamped"):
+        initial_trajectory(scene, scene.model(), rec)

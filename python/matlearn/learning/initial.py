@@ -50,6 +50,10 @@ def initial_trajectory(scene, model, rec, embedding=None, progress=None) -> tupl
     mask = ~np.isin(uniq, np.union1d(np.asarray(scene.fixed), didx))
     uniq, targets = uniq[mask], targets[:, mask]
     idx = np.concatenate([uniq, didx]).astype(np.int64)
+    if len(idx) == 0:
+        raise ValueError("initial_trajectory: every marker's nearest mesh vertex is clamped, so no free "
+                         "vertex can follow the markers; are the markers on the moving part of the body "
+                         "and in the mesh's units (m)?")
     tpos = np.concatenate([targets, dtargets], axis=1)
     steps_t = interpolate_frames(rec.times, tpos, sim_t)  # (S+1, k, 3)
     from .loop import robust_initial_state
