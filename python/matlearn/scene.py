@@ -105,18 +105,27 @@ class Scene:
 
     def check_recording(self, rec: Recording, label: str) -> None:
         """Raise a ValueError naming `label` when `rec`'s markers cannot be in this scene's units
-        (m): a marker's rest position farther than MARKER_DISTANCE_MAX x the object size from the
-        mesh, or, on a clamped body, a marker seen farther than MARKER_TRAVEL_MAX x the object
-        size from its rest position (e.g. markers in mm on a model in m)."""
-        steps = float(rec.times[-1] - rec.times[0]) / self.time_step
-        if steps > MAX_STEPS_WARN:
-            warnings.warn(f"{label}: spans {rec.times[-1] - rec.times[0]:.4g} s, {steps:.3g} steps of the scene's "
-                          f"time step ({self.time_step:.3g} s): are its times in seconds?", stacklevel=2)
-        if rec.num_markers == 0:
-            return
+        (m): a marker's (or drive point's) rest position farther than MARKER_DISTANCE_MAX x the
+        object size from the mesh, or, on a clamped body, a marker seen farther than
+        MARKER_TRAVEL_MAX x the object size from its rest position (e.g. markers in mm on a model
+        in m). Warns when 4+ markers span less than MARKER_SPREAD_MIN x the object (a mesh in mm,
+        markers in m) or frames lie FRAME_INTERVAL_WARN apart (times in ms). Point clouds are not
+        checked."""
+        dt = float(np.median(np.diff(rec.times))) if len(rec.times) > 1 else 0.0
+        if dt >= FRAME_INTERVAL_WARN:
+            warnings.warn(f"{label}: its frames are {dt:.4g} s apart (median): are its times in seconds?",
+                          stacklevel=2)
         from .embedding import embed_points
 
         size = self.object_size
+        if rec.has_drive:
+            far = np.asarray(embed_points(self.mesh, rec.drive_rest).distance, float)
+            if far.size and far.max() > MARKER_DISTANCE_MAX * size:
+                k = int(np.argmax(far))
+                raise ValueError(f"{label}: drive point {k}'s rest position lies {far[k]:.4g} m from the model's "
+                                 f"mesh (object size {size:.4g} m); drive_rest must be on the body, in m")
+        if rec.num_markers == 0:
+            return
         far = np.asarray(embed_points(self.mesh, rec.marker_rest).distance, float)
         if far.size and far.max() > MARKER_DISTANCE_MAX * size:
             k = int(np.argmax(far))
@@ -158,8 +167,8 @@ MARKER_DISTANCE_MAX = 0.1
 MARKER_TRAVEL_MAX = 5.0
 # 4 or more markers spanning less than this x the object size: warned (a mesh in mm, markers in m)
 MARKER_SPREAD_MIN = 0.01
-# a recording longer than this many time steps: warned (times in ms read as s)
-MAX_STEPS_WARN = 1e5
+# frames further apart than this (s, median): warned (times in ms read as s)
+FRAME_INTERVAL_WARN = 0.5
 
 
 def _did_you_mean(name: str, options) -> str:
@@ -199,9 +208,19 @@ def _number(value, key: str, where: str, path: Path) -> float:
     if isinstance(value, bool):
         raise ValueError(f"{path}: [{where}] {key} must be a number, got {value!r}")
     try:
-        return float(value)
+        x = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{path}: [{where}] {key} must be a number, got {value!r}") from None
+    if not np.isfinite(x):
+        raise ValueError(f"{path}: [{where}] {key} must be a finite number, got {value!r}")
+    return x
+
+
+def _text(value, key: str, where: str, path: Path) -> str:
+    """A file name given as a TOML string, or a ValueError naming the key."""
+    if not isinstance(value, str):
+        raise ValueError(f"{path}: [{where}] {key} must be a file name in quotes, got {value!r}")
+    return value
 
 
 def _numbers(value, key: str, where: str, path: Path, length: int | None = None) -> list:
@@ -249,7 +268,7 @@ def load_scene(path) -> Scene:
                              f"{_did_you_mean(section, [k for k in doc if k not in SCHEMA])}")
 
     m = doc["mesh"]
-    mesh_file = base / _require(m, "file", "mesh", path)
+    mesh_file = base / _text(_require(m, "file", "mesh", path), "file", "mesh", path)
     opts = {k: _number(m[k], k, "mesh", path) for k in ("max_volume", "min_ratio") if k in m}
     mesh = meshes.load_mesh(mesh_file, **opts)
 
@@ -280,12 +299,15 @@ def load_scene(path) -> Scene:
     if "fixed_box" in b and "fixed_vertices" in b:
         raise ValueError(f"{path}: [boundary] has both fixed_box and fixed_vertices; give one")
     if "fixed_box" in b:
-        fixed_box = [[float(x) for x in row] for row in b["fixed_box"]]
+        rows = b["fixed_box"]
+        if not isinstance(rows, list) or len(rows) != 2:
+            raise ValueError(f"{path}: [boundary] fixed_box must be [[x0, y0, z0], [x1, y1, z1]], got {rows!r}")
+        fixed_box = [_numbers(row, "fixed_box", "boundary", path, 3) for row in rows]
         fixed = vertices_in_box(mesh.vertices, fixed_box)
         if len(fixed) == 0:
             raise ValueError(f"{path}: [boundary] fixed_box {fixed_box} contains no mesh vertex")
     elif "fixed_vertices" in b:
-        fpath = base / b["fixed_vertices"]
+        fpath = base / _text(b["fixed_vertices"], "fixed_vertices", "boundary", path)
         if not fpath.exists():
             raise FileNotFoundError(f"{path}: fixed_vertices file not found: {fpath}")
         try:
@@ -311,10 +333,12 @@ def load_scene(path) -> Scene:
     gravity = tuple(_numbers(s.get("gravity", DEFAULT_GRAVITY), "gravity", "simulation", path, 3))
 
     recs = []
+    if not isinstance(doc.get("recording", []), list):
+        raise ValueError(f"{path}: recordings are an array of tables: write [[recording]], not [recording]")
     for i, r in enumerate(doc.get("recording", [])):
         if "file" not in r:
             raise ValueError(f"{path}: [[recording]] #{i} has no 'file'")
-        rp = base / r["file"]
+        rp = base / _text(r["file"], "file", "recording", path)
         if not rp.exists():
             raise FileNotFoundError(f"{path}: recording file not found: {rp}")
         role = r.get("role", "train")

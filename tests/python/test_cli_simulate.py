@@ -134,6 +134,9 @@ def test_model_and_vtu_mistakes_are_reported(scene_path, tmp_path, capsys):
     assert "is a file; pass the run folder" in capsys.readouterr().err
     assert cli.main(["simulate", str(path), "--out", out, "--quiet", "--model", str(run)]) == 2
     assert "the learned model cannot be read" in capsys.readouterr().err
+    (run / "model.json").write_text('{"use": "nn"}')
+    assert cli.main(["simulate", str(path), "--out", out, "--quiet", "--model", str(run)]) == 2
+    assert "'use' must be 'rbf' or 'mlp', got 'nn'" in capsys.readouterr().err
     vtu = tmp_path / "vtu"
     args = ["simulate", str(path), "--quiet", "--duration", "0.01", "--all-surface", "--vtu", str(vtu)]
     assert cli.main([*args, "--out", out]) == 0
@@ -157,3 +160,5 @@ def test_version_and_out_paths_that_are_files(scene_path, tmp_path, capsys):
         assert f"--out {f} is a file" in capsys.readouterr().err, cmd
     assert cli.main(["track", str(path), "--out", str(tmp_path / "t")]) == 2
     assert "no recording is point clouds only" in capsys.readouterr().err
+    assert cli.main(["track", str(path), "--out", str(path.parent), "--force"]) == 2  # never the input
+    assert "is the scene's own folder" in capsys.readouterr().err

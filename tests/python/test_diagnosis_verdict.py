@@ -190,9 +190,16 @@ def test_rayleigh_and_strain_dependent_damping_that_neither_test_separates_are_c
     big = _row("strain_dependent_damping", 0.07117, n_eff=600, floor=0.0917)
     small = _row("rayleigh_damping", 0.07146, n_eff=600, floor=0.0917)
     loo = {"strain_dependent_damping": 0.07121, "rayleigh_damping": 0.07179}
-    best, forced = _nested([small, big], loo, credit, tol)
+    half = 0.0729 + 0.5 * (0.0994 - 0.0729)  # halfway from the noise to the baseline residual
+    best, forced = _nested([small, big], loo, credit, tol, half=half)
     assert best["name"] == "rayleigh_damping"
     assert forced["_ties"] == [("rayleigh_damping", "strain_dependent_damping")]
+    # not when leave-one-recording-out prefers Rayleigh beyond the noise, nor when the damping
+    # fits explain too little to be explanations at all
+    best, forced = _nested([small, big], dict(loo, strain_dependent_damping=0.0740), credit, tol, half=half)
+    assert best["name"] == "rayleigh_damping" and "_ties" not in forced
+    best, forced = _nested([small, big], loo, credit, tol, half=0.07)
+    assert "_ties" not in forced
     credit = {"heterogeneity": 1e-3, "stiffness_scale": 1e-4}
     big = _row("heterogeneity", 0.0500, n_eff=600, floor=0.04)
     small = _row("stiffness_scale", 0.0501, n_eff=600, floor=0.04)

@@ -268,8 +268,35 @@ def test_markers_in_other_units_are_named(example_dir):
     tiny = 1e-3 * np.asarray(mesh.vertices)[:6]
     with pytest.warns(UserWarning, match=r"6 markers span .* less than the object .* same units"):
         sc.check_recording(Recording([0.0, 0.01], tiny, np.stack([tiny, tiny])), "tiny")
-    with pytest.warns(UserWarning, match=r"spans 250 s, 2.5e\+05 steps .* are its times in seconds"):
-        sc.check_recording(Recording([0.0, 250.0], rest, np.stack([rest, rest])), "ms")  # 250 ms as s
+    with pytest.warns(UserWarning, match=r"frames are 10 s apart \(median\): are its times in seconds"):
+        sc.check_recording(Recording([0.0, 10.0, 20.0], rest, np.stack([rest] * 3)), "ms")  # 10 ms frames as s
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a long recording at a high frame rate is fine
+        sc.check_recording(Recording(np.arange(0.0, 300.0, 0.01), rest, np.repeat(rest[None], 30000, axis=0)), "long")
     save_recording(Recording([0.0, 0.01], rest, np.stack([rest, 1e3 * rest])), d / "train_0.npz")
     with pytest.raises(ValueError, match="train recording train_0.npz: marker"):
         sc.recordings_with_role("train")
+
+
+@pytest.mark.parametrize(
+    "old, new, match",
+    [
+        ("[[recording]]\nfile = \"train_0.npz\"", "[recording]\nfile = \"train_0.npz\"", r"write \[\[recording\]\]"),
+        ("fixed_box = [[-1.0, -1.0, -1.0], [0.001, 1.0, 1.0]]", "fixed_box = [1, 2]", "fixed_box must be"),
+        ("fixed_box = [[-1.0, -1.0, -1.0], [0.001, 1.0, 1.0]]", "fixed_vertices = 5", "fixed_vertices must be a file name"),
+        ('file = "bar.msh"', "file = 5", r"\[mesh\] file must be a file name"),
+        ("youngs_modulus = 1.0e5", "youngs_modulus = nan", "youngs_modulus must be a finite number"),
+    ],
+)
+def test_malformed_tables_and_values_are_named(example_dir, old, new, match):
+    """Shapes TOML allows but the scene does not: each a ValueError naming the key (these were
+    TypeErrors, tracebacks on the command line, or a NaN modulus loaded silently)."""
+    d, _ = example_dir
+    text = FORMATS_EXAMPLE.replace(old, new, 1)
+    if "[recording]" in new:  # every recording then a single table
+        text = text.replace("[[recording]]\nfile = \"test_0.npz\"\nrole = \"test\"\n", "")
+    assert text != FORMATS_EXAMPLE
+    (d / "scene.toml").write_text(text)
+    with pytest.raises(ValueError, match=match), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        load_scene(d / "scene.toml")

@@ -83,18 +83,18 @@ def _run(args):
     print(f"verdict: {', '.join(r['verdict']) or '[] (within noise and discretisation)'}")
     d, gb = r.get("discretisation") or {}, r["gap_before"]
     what = "held-out gap" if r.get("held_out") else "gap on the train recordings (no test recording)"
+    parts = [f"{what} {gb['max_error_pct']:.2f} %"]
     if d.get("gap_with_offset"):
-        print(f"{what} {gb['max_error_pct']:.2f} %; with the mesh's stiffness factor E x "
-              f"{d['stiffness_factor']:.3g} alone (no effect) {d['gap_with_offset']['max_error_pct']:.2f} %"
-              + (f"; on the once-refined mesh {d['gap_refined_mesh']['max_error_pct']:.2f} %"
-                 if d.get("gap_refined_mesh") else ""))
-        from ..diagnosis.report import mesh_advice
+        parts.append(f"with the mesh's stiffness factor E x {d['stiffness_factor']:.3g} alone (no effect) "
+                     f"{d['gap_with_offset']['max_error_pct']:.2f} %")
+    if d.get("gap_refined_mesh"):
+        parts.append(f"on the once-refined mesh {d['gap_refined_mesh']['max_error_pct']:.2f} %")
+    print("; ".join(parts))
+    from ..diagnosis.report import mesh_advice
 
-        advice = mesh_advice(r)
-        if advice:
-            print(f"{advice} (report.html, Mesh)")
-    else:
-        print(f"{what} {gb['max_error_pct']:.2f} %")
+    advice = mesh_advice(r)
+    if advice:
+        print(f"{advice} (report.html, Mesh)")
     dec = r.get("decay") or {}
     if dec.get("ratio") is not None:
         print(f"decay: x{dec['ratio']:.2f} the nominal damping law's at the recorded frequencies"

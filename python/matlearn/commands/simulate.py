@@ -84,6 +84,7 @@ def _marker_points(scene, args) -> np.ndarray:
         for path in scene.recording_paths():
             rec = load_recording(path)
             if rec.num_markers:
+                scene.check_recording(rec, f"recording {Path(path).name} (its markers are the default points)")
                 return rec.marker_rest
     return np.asarray(scene.mesh.vertices)[meshes.surface_vertices(scene.mesh)]
 

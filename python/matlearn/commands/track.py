@@ -23,6 +23,9 @@ def run(args) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; track writes a folder")
+    if (out / "scene.toml").resolve() == Path(args.scene).resolve():
+        raise ValueError(f"--out {out} is the scene's own folder: tracking would replace {args.scene}; "
+                         "choose another --out")
     if (out / "scene.toml").exists() and not args.force:
         raise ValueError(f"{out} holds an earlier tracking (scene.toml); use --force to overwrite it "
                          "or choose another --out")

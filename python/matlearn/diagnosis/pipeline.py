@@ -339,7 +339,8 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
 
     if above:
         side = _support_or_region(ranked, ctx, say)
-        best, forced = _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=rss_wide)
+        best, forced = _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=rss_wide,
+                                       half=rss_noise + 0.5 * max(rss0 - rss_noise, 0.0))
         for winner, loser in side.items():
             # a stiff clamp layer is the region's description: whatever the region's nested
             # comparison chose (the uniform scale, where the region is not established) leads it
@@ -401,8 +402,8 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                    "gap_with_offset": _safe_gap(P, ctx, {}),
                    "gap_refined_mesh": _refined_gap(P)}
     if disc_report["gap_refined_mesh"] and gap_before:
-        say(f"held-out gap {gap_before['max_error_pct']:.2f} %; the nominal material on the once-refined mesh "
-            f"{disc_report['gap_refined_mesh']['max_error_pct']:.2f} %")
+        say(f"{'held-out gap' if P.test else 'gap on the train recordings'} {gap_before['max_error_pct']:.2f} %; "
+            f"the nominal material on the once-refined mesh {disc_report['gap_refined_mesh']['max_error_pct']:.2f} %")
     cumulative = {}
     for name, params in _cumulative_params(verdict, selected.params if selected else {}).items():
         cumulative[name] = _safe_gap(P, ctx, params)
@@ -530,7 +531,7 @@ def _refined_gap(P):
     fine = _refined_problem(P)
     try:
         g = fitting.gap(fine, fine.scene.model())
-    except RuntimeError:
+    except (RuntimeError, ValueError):  # a failed or non-finite simulation
         g = None
     P.simulations += fine.simulations
     return g
@@ -550,7 +551,7 @@ def _safe_gap(P, ctx, params, fast=False, model=None):
     be simulated on the held-out motion (reported, not hidden: contract.conform)."""
     try:
         return fitting.gap(P, model if model is not None else fitting.build_model(ctx, params), fast=fast)
-    except RuntimeError:
+    except (RuntimeError, ValueError):  # a failed or non-finite simulation
         return None
 
 

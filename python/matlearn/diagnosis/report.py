@@ -108,8 +108,9 @@ def mesh_paragraph(result) -> str:
             f"{d['refined_mesh_factor']:.3g}, and the recordings ask for E x {d['stiffness_factor']:.3g} "
             f"(inside the range a finer truth explains, {d['factor_range'][0]:.3g} .. {d['factor_range'][1]:.3g}; "
             f"a uniform stiffness or density change inside it cannot be told apart from the mesh's error).")
+    what = "held-out gap" if result.get("held_out", True) else "gap on the train recordings (no test recording)"
     if g:
-        text += (f" With that factor alone, no effect added, the held-out gap is max {g['max_error_pct']:.2f} %"
+        text += (f" With that factor alone, no effect added, the {what} is max {g['max_error_pct']:.2f} %"
                  f" (before {gb['max_error_pct']:.2f} %).")
     gr = d.get("gap_refined_mesh")
     if gr:

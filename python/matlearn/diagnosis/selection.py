@@ -146,7 +146,7 @@ OFFSET_NESTS = {"poisson_ratio": "stiffness_scale"}
 AMPLITUDE_NESTS = ("strain_dependent_damping",)
 
 
-def _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=None):
+def _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=None, half=None):
     """The best-ranked family, with a nested pair decided on evidence: the larger family (e.g.
     strain-dependent damping, which contains Rayleigh damping) is preferred only when both its
     criterion charged with its discretisation credit is lower (ranking.credited at face
@@ -154,7 +154,7 @@ def _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=None):
     leave-one-recording-out residual is lower by more than the noise fluctuation (with one
     train recording, the criterion alone). When exactly one of the two prefers it, the data
     cannot tell them apart: the smaller one is reported, confounded with the larger (also when
-    neither does and the larger adds only an amplitude dependence, AMPLITUDE_NESTS). When the
+    neither does and the larger adds only an amplitude dependence, `_amplitude_tie`). When the
     best is a smaller family that several larger ones contain (the stiffness scale: a located
     region, a Poisson ratio with its own scale), each pair is decided alone and, of the larger
     ones preferred, the best once charged its credit at face value leads. Returns (best row,
@@ -175,7 +175,7 @@ def _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=None):
             winners.append((big, small))
             continue
         _force(forced, small["name"], big["name"])
-        if by_score or by_cv or big["name"] in AMPLITUDE_NESTS:
+        if by_score or by_cv or _amplitude_tie(big, small, cv_of, tol, half):
             forced.setdefault("_ties", []).append((small["name"], big["name"]))
     if not pairs:
         return best, forced
@@ -184,6 +184,18 @@ def _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=None):
     for big, small in winners:
         _force(forced, big["name"], small["name"])
     return min((w for w, _ in winners), key=lambda r: ranking.credited(r, credit, 1.0)), forced
+
+
+def _amplitude_tie(big, small, cv_of, tol, half) -> bool:
+    """Whether a nested pair whose larger family adds only an amplitude dependence
+    (AMPLITUDE_NESTS) explains the data equally: both explain it (leave less than `half`, the
+    residual halfway between the marker noise and the baseline, as ranking.confounded asks), the
+    larger fits at least as well, and leave-one-recording-out does not prefer the smaller one
+    beyond the noise."""
+    if big["name"] not in AMPLITUDE_NESTS or half is None or not big["rss"] <= small["rss"] < half:
+        return False
+    lb, ls = cv_of(big["name"], big["_fit"]), cv_of(small["name"], small["_fit"])
+    return lb is None or ls is None or lb <= ls + tol.get(big["name"], 0.0)
 
 
 def _force(forced, winner, loser):

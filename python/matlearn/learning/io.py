@@ -83,6 +83,8 @@ def load_model(run_dir, kind: str | None = None):
     try:
         info = json.loads((run / MODEL_JSON).read_text())
         kind = kind or info.get("use", "rbf")
+        if kind not in ("rbf", "mlp"):
+            raise ValueError(f"{run / MODEL_JSON}: 'use' must be 'rbf' or 'mlp', got {kind!r}")
         if kind == "rbf":
             return load_rbf(run).correction()
         # the MLP reproduces the RBF's (dPh, dalpha); how the damping acts is the RBF's too
