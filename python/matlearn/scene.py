@@ -103,6 +103,21 @@ class Scene:
             out.append(rec)
         return out
 
+    def check_points(self, points, what: str) -> None:
+        """Raise a ValueError when a rest-space point lies farther than MARKER_DISTANCE_MAX x the
+        object size from the mesh (points in other units than the scene's, or of another body);
+        `what` names the points ("<recording>: marker")."""
+        from .embedding import embed_points
+
+        size = self.object_size
+        far = np.asarray(embed_points(self.mesh, points).distance, float)
+        if far.size and far.max() > MARKER_DISTANCE_MAX * size:
+            k = int(np.argmax(far))
+            raise ValueError(
+                f"{what} {k}'s rest position {np.round(np.asarray(points)[k], 6).tolist()} lies {far[k]:.4g} m "
+                f"from the model's mesh (object size {size:.4g} m); rest positions must be on or near the "
+                f"body, in the scene's units (m)")
+
     def check_recording(self, rec: Recording, label: str) -> None:
         """Raise a ValueError naming `label` when `rec`'s markers cannot be in this scene's units
         (m): a marker's (or drive point's) rest position farther than MARKER_DISTANCE_MAX x the
@@ -115,24 +130,12 @@ class Scene:
         if dt >= FRAME_INTERVAL_WARN:
             warnings.warn(f"{label}: its frames are {dt:.4g} s apart (median): are its times in seconds?",
                           stacklevel=2)
-        from .embedding import embed_points
-
         size = self.object_size
         if rec.has_drive:
-            far = np.asarray(embed_points(self.mesh, rec.drive_rest).distance, float)
-            if far.size and far.max() > MARKER_DISTANCE_MAX * size:
-                k = int(np.argmax(far))
-                raise ValueError(f"{label}: drive point {k}'s rest position lies {far[k]:.4g} m from the model's "
-                                 f"mesh (object size {size:.4g} m); drive_rest must be on the body, in m")
+            self.check_points(rec.drive_rest, f"{label}: drive point")
         if rec.num_markers == 0:
             return
-        far = np.asarray(embed_points(self.mesh, rec.marker_rest).distance, float)
-        if far.size and far.max() > MARKER_DISTANCE_MAX * size:
-            k = int(np.argmax(far))
-            raise ValueError(
-                f"{label}: marker {k}'s rest position {np.round(rec.marker_rest[k], 6).tolist()} lies "
-                f"{far[k]:.4g} m from the model's mesh (object size {size:.4g} m); marker_rest must be "
-                f"on or near the body's surface, in the scene's units (m)")
+        self.check_points(rec.marker_rest, f"{label}: marker")
         rest = np.asarray(rec.marker_rest, float)
         spread = float(np.linalg.norm(np.ptp(rest, axis=0))) if len(rest) >= 4 else None
         if spread is not None and spread < MARKER_SPREAD_MIN * size:

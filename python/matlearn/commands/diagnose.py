@@ -82,16 +82,15 @@ def _run(args):
                  resume=args.resume)
     print(f"verdict: {', '.join(r['verdict']) or '[] (within noise and discretisation)'}")
     d, gb = r.get("discretisation") or {}, r["gap_before"]
-    what = "held-out gap" if r.get("held_out") else "gap on the train recordings (no test recording)"
-    parts = [f"{what} {gb['max_error_pct']:.2f} %"]
+    from ..diagnosis.report import gap_label, mesh_advice
+
+    parts = [f"{gap_label(bool(r.get('held_out')))} {gb['max_error_pct']:.2f} %"]
     if d.get("gap_with_offset"):
         parts.append(f"with the mesh's stiffness factor E x {d['stiffness_factor']:.3g} alone (no effect) "
                      f"{d['gap_with_offset']['max_error_pct']:.2f} %")
     if d.get("gap_refined_mesh"):
         parts.append(f"on the once-refined mesh {d['gap_refined_mesh']['max_error_pct']:.2f} %")
     print("; ".join(parts))
-    from ..diagnosis.report import mesh_advice
-
     advice = mesh_advice(r)
     if advice:
         print(f"{advice} (report.html, Mesh)")

@@ -10,7 +10,7 @@ from .. import meshes, replay
 from ..embedding import embed_points
 from ..progress import ProgressBar
 from ..recording import Recording, load_recording, save_recording
-from ..scene import MARKER_DISTANCE_MAX, load_scene, vertices_in_box
+from ..scene import load_scene, vertices_in_box
 
 
 def load_correction(run_dir, scene):
@@ -73,12 +73,7 @@ def _marker_points(scene, args) -> np.ndarray:
         pts = np.atleast_2d(np.loadtxt(p, comments="#"))
         if pts.shape[1] != 3:
             raise ValueError(f"--markers: expected 3 columns (x y z rest positions), got {pts.shape}")
-        far = np.asarray(embed_points(scene.mesh, pts).distance, float)
-        size = scene.object_size
-        if far.size and far.max() > MARKER_DISTANCE_MAX * size:
-            k = int(np.argmax(far))
-            raise ValueError(f"--markers: point {k} {pts[k].tolist()} lies {far[k]:.4g} m from the mesh "
-                             f"(object size {size:.4g} m); give rest positions on or near the surface, in m")
+        scene.check_points(pts, "--markers: point")
         return pts
     if not args.all_surface:
         for path in scene.recording_paths():

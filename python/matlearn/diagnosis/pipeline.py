@@ -340,7 +340,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     if above:
         side = _support_or_region(ranked, ctx, say)
         best, forced = _resolve_nested(ranked, cv_of, credit, tol, say, floor_wide=rss_wide,
-                                       half=rss_noise + 0.5 * max(rss0 - rss_noise, 0.0))
+                                       half=ranking.explanation_bar(rss0, rss_noise))
         for winner, loser in side.items():
             # a stiff clamp layer is the region's description: whatever the region's nested
             # comparison chose (the uniform scale, where the region is not established) leads it
@@ -402,7 +402,9 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                    "gap_with_offset": _safe_gap(P, ctx, {}),
                    "gap_refined_mesh": _refined_gap(P)}
     if disc_report["gap_refined_mesh"] and gap_before:
-        say(f"{'held-out gap' if P.test else 'gap on the train recordings'} {gap_before['max_error_pct']:.2f} %; "
+        from .report import gap_label
+
+        say(f"{gap_label(bool(P.test))} {gap_before['max_error_pct']:.2f} %; "
             f"the nominal material on the once-refined mesh {disc_report['gap_refined_mesh']['max_error_pct']:.2f} %")
     cumulative = {}
     for name, params in _cumulative_params(verdict, selected.params if selected else {}).items():

@@ -125,6 +125,12 @@ def order(rows: list, credit: dict, tol: dict, forced: dict | None = None) -> li
     return out + rest
 
 
+def explanation_bar(rss0: float, rss_noise: float) -> float:
+    """The residual a fit must leave less than to count as an explanation: halfway between the
+    marker noise (which no fit can explain) and the baseline residual rss0."""
+    return rss_noise + 0.5 * max(rss0 - rss_noise, 0.0)
+
+
 def confounded(rows: list, credit: dict, tol: dict, rss0: float, forced: dict | None = None,
                rss_noise: float = 0.0) -> None:
     """row["confounded_with"]: the simulated fits that explain the data as well as this one
@@ -139,7 +145,7 @@ def confounded(rows: list, credit: dict, tol: dict, rss0: float, forced: dict | 
         for b in sim:
             if a is b or forced_over(forced, a["name"], b["name"]) or forced_over(forced, b["name"], a["name"]):
                 continue
-            half = rss_noise + 0.5 * max(rss0 - rss_noise, 0.0)
+            half = explanation_bar(rss0, rss_noise)
             explains = min(rss0 - a["rss"], rss0 - b["rss"]) > 0 and max(a["rss"], b["rss"]) < half
             if explains and not beats(a, b, credit, tol) and not beats(b, a, credit, tol):
                 a["confounded_with"].append(b["name"])

@@ -108,7 +108,7 @@ def mesh_paragraph(result) -> str:
             f"{d['refined_mesh_factor']:.3g}, and the recordings ask for E x {d['stiffness_factor']:.3g} "
             f"(inside the range a finer truth explains, {d['factor_range'][0]:.3g} .. {d['factor_range'][1]:.3g}; "
             f"a uniform stiffness or density change inside it cannot be told apart from the mesh's error).")
-    what = "held-out gap" if result.get("held_out", True) else "gap on the train recordings (no test recording)"
+    what = gap_label(result.get("held_out", True))
     if g:
         text += (f" With that factor alone, no effect added, the {what} is max {g['max_error_pct']:.2f} %"
                  f" (before {gb['max_error_pct']:.2f} %).")
@@ -120,6 +120,11 @@ def mesh_paragraph(result) -> str:
     if advice:
         text += " " + advice[0].upper() + advice[1:] + "."
     return f"<p><b>Mesh:</b> {html.escape(text)}</p>"
+
+
+def gap_label(held_out: bool) -> str:
+    """What gap_before measures: the test recordings, or the train ones when there is none."""
+    return "held-out gap" if held_out else "gap on the train recordings (no test recording)"
 
 
 def mesh_advice(result) -> str | None:

@@ -78,13 +78,13 @@ def load_model(run_dir, kind: str | None = None):
                          f"(it holds {MODEL_NPZ} and {MODEL_JSON})")
     if not (run / MODEL_NPZ).exists() or not (run / MODEL_JSON).exists():
         raise FileNotFoundError(f"{run}: not a learned-model folder (no {MODEL_NPZ}/{MODEL_JSON})")
-    if kind not in (None, "rbf", "mlp"):
-        raise ValueError(f"kind must be 'rbf' or 'mlp', got {kind!r}")
     try:
         info = json.loads((run / MODEL_JSON).read_text())
-        kind = kind or info.get("use", "rbf")
-        if kind not in ("rbf", "mlp"):
-            raise ValueError(f"{run / MODEL_JSON}: 'use' must be 'rbf' or 'mlp', got {kind!r}")
+        use = kind or info.get("use", "rbf")
+        if use not in ("rbf", "mlp"):
+            where = "kind" if kind else f"{run / MODEL_JSON}: 'use'"
+            raise ValueError(f"{where} must be 'rbf' or 'mlp', got {use!r}")
+        kind = use
         if kind == "rbf":
             return load_rbf(run).correction()
         # the MLP reproduces the RBF's (dPh, dalpha); how the damping acts is the RBF's too
