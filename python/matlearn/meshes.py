@@ -29,6 +29,36 @@ def _orient(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return tets
 
 
+def unique_edges(T: np.ndarray) -> np.ndarray:
+    """The sorted unique vertex pairs (E, 2) of the tets' edges."""
+    pairs = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+    E = np.sort(T[:, pairs].reshape(-1, 2), axis=1)
+    return np.unique(E, axis=0)
+
+
+def refine_tets(V: np.ndarray, T: np.ndarray):
+    """Regular 1-to-8 refinement: edge midpoints become vertices (appended after V in the order
+    of the sorted unique edge list), each tet splits into 4 corner tets and 4 octahedron tets."""
+    E = unique_edges(T)
+    n = len(V)
+    Vn = np.vstack([V, 0.5 * (V[E[:, 0]] + V[E[:, 1]])])
+    key = E[:, 0].astype(np.int64) * n + E[:, 1]
+    order = np.argsort(key)
+
+    def mid(a, b):
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        return n + order[np.searchsorted(key[order], lo.astype(np.int64) * n + hi)]
+
+    a, b, c, d = T.T
+    ab, ac, ad, bc, bd, cd = mid(a, b), mid(a, c), mid(a, d), mid(b, c), mid(b, d), mid(c, d)
+    kids = [
+        (a, ab, ac, ad), (ab, b, bc, bd), (ac, bc, c, cd), (ad, bd, cd, d),
+        (ab, ac, ad, bd), (ab, ac, bc, bd), (ac, ad, bd, cd), (ac, bc, bd, cd),
+    ]
+    Tn = np.stack([np.stack(k, axis=1) for k in kids], axis=1).reshape(-1, 4)
+    return Vn, _orient(Vn, Tn)
+
+
 def folded_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Indices of tets that overlap a neighbour: across an interior face (shared by two tets) the
     two opposite vertices must lie on opposite sides of the face's plane; where they lie on the

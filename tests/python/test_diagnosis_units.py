@@ -5,7 +5,8 @@ import pytest
 from matlearn import meshes
 from matlearn.diagnosis import fitting, where
 from matlearn.diagnosis.effects import EffectContext, build_model, clamp_layer
-from matlearn.diagnosis.problem import Problem, refine_tets
+from matlearn.diagnosis.problem import Problem
+from matlearn.meshes import refine_tets
 from matlearn.scene import Scene, vertices_in_box
 from matlearn.materials import Damping, Material
 

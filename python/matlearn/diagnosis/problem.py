@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import replay
+from .. import meshes, replay
 from ..embedding import embed_points
 from ..materials import Damping, Material
 from ..recording import Recording, load_recording
@@ -222,10 +222,8 @@ class Problem:
         """The scene on a mesh refined once (each tet split into 8), same material and clamp: a
         scene clamped by a box clamps every refined vertex in it; one clamped by a vertex list
         clamps the midpoints of edges whose ends are both clamped."""
-        from ..meshes import TetMesh
-
-        V, T = refine_tets(np.asarray(self.mesh.vertices), np.asarray(self.mesh.tets))
-        mesh = TetMesh(V, T)
+        V, T = meshes.refine_tets(np.asarray(self.mesh.vertices), np.asarray(self.mesh.tets))
+        mesh = meshes.TetMesh(V, T)
         s = self.scene
         m = s.mesh.num_tets
         rep = lambda a: np.repeat(np.broadcast_to(np.asarray(a, float), (m,)), 8)  # noqa: E731
@@ -242,7 +240,7 @@ class Problem:
         else:
             fixed_old = np.zeros(s.mesh.num_vertices, bool)
             fixed_old[s.fixed] = True
-            edges = _edges(np.asarray(self.mesh.tets))
+            edges = meshes.unique_edges(np.asarray(self.mesh.tets))
             fixed = np.flatnonzero(np.concatenate([fixed_old, fixed_old[edges].all(axis=1)]))
         return Scene(mesh, mat, Damping(**vars(s.damping)), fixed, s.time_step,
                      s.gravity, list(s.recordings), s.path, fixed_box=s.fixed_box)
@@ -425,39 +423,6 @@ def start_in_motion(problem, rec: Recording, frames: int = 7, scales=START_SCALE
     moving = rss_rest - rss_moving >= START_EXPLAINED * max(rss_rest - noise, 0.0) and rss_moving < rss_rest
     info.update(rss_moving=rss_moving, scale_moving=s_moving, rss_noise=noise, moving=bool(moving))
     return (mv if moving else None), info
-
-
-def _edges(T: np.ndarray) -> np.ndarray:
-    pairs = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
-    E = np.sort(T[:, pairs].reshape(-1, 2), axis=1)
-    return np.unique(E, axis=0)
-
-
-def refine_tets(V: np.ndarray, T: np.ndarray):
-    """Regular 1-to-8 refinement: edge midpoints become vertices (appended after V in the order
-    of the sorted unique edge list), each tet splits into 4 corner tets and 4 octahedron tets."""
-    E = _edges(T)
-    n = len(V)
-    Vn = np.vstack([V, 0.5 * (V[E[:, 0]] + V[E[:, 1]])])
-    key = E[:, 0].astype(np.int64) * n + E[:, 1]
-    order = np.argsort(key)
-
-    def mid(a, b):
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        return n + order[np.searchsorted(key[order], lo.astype(np.int64) * n + hi)]
-
-    a, b, c, d = T.T
-    ab, ac, ad, bc, bd, cd = mid(a, b), mid(a, c), mid(a, d), mid(b, c), mid(b, d), mid(c, d)
-    kids = [
-        (a, ab, ac, ad), (ab, b, bc, bd), (ac, bc, c, cd), (ad, bd, cd, d),
-        (ab, ac, ad, bd), (ab, ac, bc, bd), (ac, ad, bd, cd), (ac, bc, bd, cd),
-    ]
-    Tn = np.stack([np.stack(k, axis=1) for k in kids], axis=1).reshape(-1, 4)
-    # orient positively
-    D = Vn[Tn[:, 1:]] - Vn[Tn[:, :1]]
-    neg = np.linalg.det(D) < 0
-    Tn[neg, 1], Tn[neg, 2] = Tn[neg, 2].copy(), Tn[neg, 1].copy()
-    return Vn, Tn
 
 
 def stack_residuals(recs, predict, object_size: float) -> np.ndarray:
