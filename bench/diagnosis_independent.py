@@ -17,7 +17,7 @@ dropouts. The truth lives on a finer mesh of the same surface. One control case,
 effect of the formats.md vocabulary (or two) with a magnitude drawn from the seed in a plausible
 range. History dependence is left out.
 
-    python bench/diagnosis_independent.py [--seed N] [--only CASE ...] [--fresh] [--build-only]
+    python bench/diagnosis_independent.py [--seed N] [--shuffle-shapes] [--only CASE ...] [--fresh] [--build-only]
 
 Scored like bench/diagnosis_suite.py (top1 strict / generous with confounded_with, control
 clean, region IoU, gap before / after, wall). Writes bench/results/diagnosis_independent.json;
@@ -62,6 +62,20 @@ CASES = [
     ("sdamping", ["strain_dependent_damping"], "plate_hole"),
     ("stiff+rayleigh", ["stiffness_scale", "rayleigh_damping"], "torus"),
 ]
+SHAPES = ("cylinder", "ring", "torus", "lbracket", "tube", "plate_hole")
+GRID_SHAPES = ("lbracket", "tube", "plate_hole")  # add_pad (the compliant support) needs a hex grid
+
+
+def shuffled_shapes(seed: int) -> list:
+    """--shuffle-shapes: each case's shape drawn from the seed, never its fixed one, so that an
+    effect is not always seen on the same shape (the fixed pairing lets a shape's quirks pass for
+    the diagnosis's skill or failure on an effect)."""
+    rng = np.random.default_rng(7919 * seed + 17)
+    out = []
+    for name, effects, fixed in CASES:
+        pool = GRID_SHAPES if "support_compliance" in effects else SHAPES
+        out.append(str(rng.choice([s for s in pool if s != fixed])))
+    return out
 
 
 # ------------------------------------------------------------------------------------ shapes
@@ -525,15 +539,20 @@ def main(argv=None):
     ap.add_argument("--collect", action="store_true",
                     help="write the JSON from the rows already cached in the work folder, run nothing")
     ap.add_argument("--timeout", type=float, default=420.0, help="per-diagnosis limit (s)")
+    ap.add_argument("--shuffle-shapes", action="store_true",
+                    help="draw each case's shape from the seed (never its fixed one); work folder and results "
+                         "get a _shuffled suffix")
     ap.add_argument("--work", type=Path)
     ap.add_argument("--out", type=Path, help="results JSON (default bench/results/diagnosis_independent.json for "
                                              "seed 11, diagnosis_independent_<seed>.json otherwise)")
     args = ap.parse_args(argv)
-    work = args.work or ROOT / "work" / f"independent_{args.seed}"
+    suffix = "_shuffled" if args.shuffle_shapes else ""
+    work = args.work or ROOT / "work" / f"independent_{args.seed}{suffix}"
+    shapes = shuffled_shapes(args.seed) if args.shuffle_shapes else [c[2] for c in CASES]
     commit = code_commit()  # the code the diagnoses run on (taken at the start)
     rows, not_run = [], []
     print(f"{'case':16s} {'shape':10s} {'true':32s} {'verdict':34s} top1 strict  before  after effect  wall   cpu")
-    for i, (name, effects, shape_kind) in enumerate(CASES):
+    for i, ((name, effects, _), shape_kind) in enumerate(zip(CASES, shapes)):
         if args.only and name not in args.only:
             continue
         if args.collect:
@@ -570,14 +589,14 @@ def main(argv=None):
         elif "error" in r:
             misses[r["case"]] = f"error: {r['error'][-300:]}"
     res = {"notes": {"commit": commit if not args.collect else f"rows cached by earlier runs; HEAD {commit}",
-                     "seed": args.seed,
+                     "seed": args.seed, "shuffled_shapes": bool(args.shuffle_shapes),
                      "what": "independent validation suite of `matlearn diagnose` (bench/diagnosis_independent.py): "
                              "own shapes, truths, motions and file writers, public formats only; held out, never "
                              "tuned on",
                      "misses": misses},
            "cases": rows, "totals": tot}
-    out = args.out or ROOT / "results" / ("diagnosis_independent.json" if args.seed == 11
-                                          else f"diagnosis_independent_{args.seed}.json")
+    out = args.out or ROOT / "results" / ("diagnosis_independent.json" if args.seed == 11 and not suffix
+                                          else f"diagnosis_independent_{args.seed}{suffix}.json")
     out.write_text(json.dumps(res, indent=1, default=lambda o: np.asarray(o).tolist()))
     print(f"wrote {out}")
     return 0
