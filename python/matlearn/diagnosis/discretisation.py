@@ -25,150 +25,16 @@ OFFSET_GRID = (-0.05, -0.1, -0.2, -0.35, -0.5, -0.7, -0.9, -1.2)
 def _refined_problem(P):
     """A Problem sharing P's recordings and start decisions on the once-refined scene, with no
     discrepancy of its own."""
-    return _problem_on(P, P.refined_scene())
-
-
-def _problem_on(P, scene):
-    """A Problem sharing P's recordings and start decisions on `scene`, with no discrepancy of
-    its own."""
     from .problem import Problem
 
-    other = Problem.__new__(Problem)
-    other.__dict__.update(P.__dict__)
-    other.scene = scene
-    other._emb = {}
-    other._rest_offsets = {}
-    other.disc_bias = {}
-    other.simulations = 0
-    return other
-
-
-CUT_DEPTH = 0.02
-
-
-def box_cut_tets(V: np.ndarray, T: np.ndarray, box) -> np.ndarray:
-    """bool (#T): the tets with part of their volume inside the box: no separating axis (box
-    axes, tet face normals, cross products of their edges) splits them strictly, so a tet that
-    only touches the box (a box whose face lies on the body's face) is not cut."""
-    lo, hi = np.clip(np.asarray(box, float), V.min(axis=0) - 1.0, V.max(axis=0) + 1.0)  # finite
-    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    tol = 1e-9 * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
-    X = V[T] - centre  # (T, 4, 3) in the box's frame
-    edges = X[:, [1, 2, 3, 2, 3, 3]] - X[:, [0, 0, 0, 1, 1, 2]]  # (T, 6, 3)
-    normals = np.cross(edges[:, [0, 0, 1, 3]], edges[:, [1, 2, 2, 4]])  # faces 012, 013, 023, 123
-    crosses = np.cross(edges[:, :, None, :], np.eye(3)[None, None]).reshape(len(T), 18, 3)
-    axes = np.concatenate([np.broadcast_to(np.eye(3), (len(T), 3, 3)), normals, crosses], axis=1)
-    p = np.einsum("tad,tkd->tak", axes, X)  # the vertices' projections
-    r = np.abs(axes) @ half  # the box's half extent along each axis
-    pmin, pmax = p.min(axis=2), p.max(axis=2)
-    overlap = np.minimum(pmax, r) - np.maximum(pmin, -r)
-    # apart along an axis: no overlap, or one thinner than CUT_DEPTH of the tet's extent (a box
-    # drawn a hair beyond the body's face, as boxes are, does not cut the tets behind it)
-    apart = overlap <= CUT_DEPTH * (pmax - pmin) + tol * np.linalg.norm(axes, axis=2)
-    return ~np.any(apart & (pmax - pmin > 0), axis=1)
-
-
-def box_cut_vertices(V: np.ndarray, T: np.ndarray, box, fixed) -> np.ndarray:
-    """The vertices, not in `fixed`, of the tets the box cuts (box_cut_tets)."""
-    return np.setdiff1d(np.unique(T[box_cut_tets(V, T, box)]), np.asarray(fixed, np.int64))
-
-
-# the cut tets' log stiffness scales tried before the local fit (a multiple of the bound)
-CUT_GRID = (0.03, 0.07, 0.15, 0.3, 0.6, 1.0)
-
-
-def _cut_context(ctx, cut: np.ndarray, theta_offset: float = 0.0):
-    """ctx with its E scaled by exp(theta_offset) and its support_compliance family acting on
-    the cut tets (the clamp hold's stiffness)."""
-    from dataclasses import replace
-
-    mat = ctx.material
-    new = replace(ctx, material=replace(mat, youngs_modulus=np.asarray(mat.youngs_modulus, float)
-                                        * np.exp(theta_offset)))
-    new.clamp_layer = cut
-    return new
-
-
-def _fit_cut(P, ctx_cut, hi: float, target=None, recs=None) -> float:
-    """The cut tets' log stiffness in [0, hi] that best matches the recordings (or `target`)."""
-    name = "support_compliance"
-    r0 = fitting.residual_of(P, ctx_cut, {}, recs)
-    if target is not None:
-        r0 = r0 - target
-    best = fitting.scan(P, ctx_cut, name, hi, r0, grid=[g * hi for g in CUT_GRID], target=target, recs=recs)
-    if best[0] == 0.0:
-        return 0.0
-    fit = fitting.refine(P, ctx_cut, [name], {name: best}, iterations=2, target=target, recs=recs)
-    return float(np.clip(fit.params[name][0], 0.0, hi))
-
-
-def clamp_hold_bound(P, ctx, theta_r: float, say=None):
-    """How much stiffer a box clamp may hold the body than the model does. A box clamp holds the
-    body over a region, the model at the mesh vertices inside the box only; a finer body (or the
-    real fixture) is held over more of the region, so it is stiffer near the clamp (independent
-    suite, shuffled shapes, seed 16: a ring clamped by a box across its wall, the coarse mesh
-    holding 13 vertices up to 0.92 of the radius, the truth's mesh 36 up to 0.87; the truth's
-    first frequency 11 % higher and the control blamed on stiffness_scale). The once-refined
-    mesh does not show it where no edge midpoint falls in the box. The tets the box cuts
-    (box_cut_tets, not wholly held) stand in for the hold: their log stiffness that makes the
-    model (at the reference offset theta_r) match the model held also at every vertex of those
-    tets (first recording) is the bound. Returns (cut mask, bound) or (None, 0.0) for a
-    vertex-list clamp or a box that cuts no tet. Call before the discrepancy is set (the match
-    compares raw residuals)."""
-    from dataclasses import replace
-
-    P.clamp_footprint = None
-    s = P.scene
-    if s.fixed_box is None:
-        return None, 0.0
-    V, T = np.asarray(s.mesh.vertices, float), np.asarray(s.mesh.tets, np.int64)
-    is_fixed = np.zeros(len(V), bool)
-    is_fixed[s.fixed] = True
-    cut = box_cut_tets(V, T, s.fixed_box) & ~is_fixed[T].all(axis=1)
-    if not cut.any():
-        return None, 0.0
-    extra = np.setdiff1d(np.unique(T[cut]), s.fixed)
-    held = _problem_on(P, replace(s, fixed=np.union1d(s.fixed, extra)))
-    recs = P.train[:1]
-    ctx_r = _cut_context(ctx, cut, theta_r)
-    rh = fitting.residual_of(held, ctx_r, {}, recs)
-    P.simulations += held.simulations
-    if not _usable(rh):
-        return None, 0.0
-    bound = _fit_cut(P, ctx_r, 3.0, target=rh, recs=recs)
-    P.clamp_footprint = {"vertices_in_box": int(len(s.fixed)), "vertices_of_cut_tets": int(len(extra)),
-                         "cut_tets": int(cut.sum()), "cut_stiffness_range": [1.0, float(np.exp(bound))]}
-    if say:
-        say(f"clamp hold: the box cuts {int(cut.sum())} tets ({len(extra)} vertices beyond the {len(s.fixed)} "
-            f"inside it); held there too the model matches those tets x {np.exp(bound):.3g} stiffer")
-    return cut, bound
-
-
-def _clamp_hold(P, ctx, cut, bound: float, lo: float, hi: float, say=None):
-    """The baseline ctx (offset applied) with the cut tets' stiffness the recordings ask for
-    inside [1, exp(bound)] baked in, and the offset refitted inside [lo, hi] with it; (ctx,
-    offset change)."""
-    theta_k = _fit_cut(P, _cut_context(ctx, cut), bound)
-    P.clamp_footprint["cut_stiffness_factor"] = float(np.exp(theta_k))
-    if theta_k <= 0.0:
-        return ctx, 0.0
-    from dataclasses import replace
-
-    mat = ctx.material
-    E = np.broadcast_to(np.asarray(mat.youngs_modulus, float), cut.shape).copy()
-    E[cut] *= np.exp(theta_k)
-    held = replace(ctx, material=replace(mat, youngs_modulus=E))
-    held.clamp_layer = ctx.clamp_layer
-    again = fitting.refine(P, held, ["stiffness_scale"], {"stiffness_scale": [0.0]}, iterations=2)
-    shift = float(np.clip(ctx.offset_applied + again.params["stiffness_scale"][0], lo, hi)) - ctx.offset_applied
-    if say:
-        say(f"clamp hold: the recordings ask the cut tets x {np.exp(theta_k):.3g} stiffer (inside [1, "
-            f"{np.exp(bound):.3g}]), the offset then x {np.exp(shift):.3g}")
-    if shift != 0.0:
-        held = replace(held, material=replace(mat, youngs_modulus=E * np.exp(shift)),
-                       offset_applied=ctx.offset_applied + shift)
-        held.clamp_layer = ctx.clamp_layer
-    return held, shift
+    fine = Problem.__new__(Problem)
+    fine.__dict__.update(P.__dict__)
+    fine.scene = P.refined_scene()
+    fine._emb = {}
+    fine._rest_offsets = {}
+    fine.disc_bias = {}
+    fine.simulations = 0
+    return fine
 
 
 def _usable(b: np.ndarray) -> bool:
@@ -275,7 +141,6 @@ def discretisation(P, ctx, say, follow_damping: bool | None = None):
     theta_r = float(fit.params["stiffness_scale"][0])
     b = rf - fitting.residual_of(P, ctx, fit.params, recs)
     lo, hi = sorted((DISC_RANGE[0] * theta_r, DISC_RANGE[1] * theta_r))
-    cut, bound = clamp_hold_bound(P, ctx, theta_r, say)  # a box clamp may hold a finer body stiffer
     if _usable(b):
         sizes = np.cumsum([3 * int(r.seen.sum()) for r in recs])[:-1]
         before = fine.simulations
@@ -299,9 +164,6 @@ def discretisation(P, ctx, say, follow_damping: bool | None = None):
     new = replace(ctx, material=replace(mat, youngs_modulus=E), offset_applied=theta,
                   offset_reference=theta_r, offset_range=(lo, hi))
     new.clamp_layer = ctx.clamp_layer
-    if bound > 0.0:
-        new, shift = _clamp_hold(P, new, cut, bound, lo, hi, say)
-        theta += shift
     say(f"discretisation: coarse-vs-refined rss {float((rc - rf) @ (rc - rf)):.3e}, after "
         f"stiffness offset {float(b @ b):.3e} (removed with a weight in {DISC_RANGE}); offset "
         f"range [{np.exp(lo):.3f}, {np.exp(hi):.3f}], data {np.exp(data.params['stiffness_scale'][0]):.3f}")

@@ -401,8 +401,6 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                    "factor_range": [float(np.exp(t)) for t in ctx.offset_range],
                    "gap_with_offset": _safe_gap(P, ctx, {}),
                    "gap_refined_mesh": _refined_gap(P)}
-    if P.clamp_footprint:  # a box clamp cutting tets: how much stiffer it may hold (discretisation)
-        disc_report["clamp_footprint"] = dict(P.clamp_footprint)
     if disc_report["gap_refined_mesh"] and gap_before:
         from .report import gap_label
 

@@ -61,7 +61,6 @@ class Problem:
         self.disc_bias_damping = {}  # its change with the damping (fitting.discrepancy)
         self.disc_bias_ratio = None
         self.disc_weight_range = (0.0, 0.0)
-        self.clamp_footprint = None  # a box clamp's hold (discretisation.clamp_hold_bound)
 
     @property
     def mesh(self):

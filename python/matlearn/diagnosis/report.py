@@ -131,8 +131,7 @@ def mesh_advice(result) -> str | None:
     """What to do about the mesh when the verdict is empty and the mesh alone accounts for most
     of the gap (None otherwise): refine it where the once-refined mesh halves the gap; where only
     the stiffness factor does (the refined mesh does not), the gap is a uniform stiffness or
-    density change that this mesh's error, or a box clamp that holds a finer body over more of
-    it, cannot be told from."""
+    density change that this mesh's error cannot be told from."""
     d, gb = result.get("discretisation") or {}, result["gap_before"]["max_error_pct"]
     if result["verdict"] or not gb:
         return None
@@ -140,13 +139,6 @@ def mesh_advice(result) -> str | None:
     if gr and gr["max_error_pct"] < 0.5 * gb:
         return "most of the gap is the mesh's discretisation: refine the mesh"
     if g and g["max_error_pct"] < 0.5 * gb:
-        cf = d.get("clamp_footprint") or {}
-        if cf.get("cut_stiffness_factor", 1.0) > 1.0:
-            return (f"E x {d['stiffness_factor']:.3g} on this mesh, with the {cf['cut_tets']} tets the clamp box cuts "
-                    f"x {cf['cut_stiffness_factor']:.3g} stiffer, removes most of the gap: the box holds this mesh "
-                    f"at {cf['vertices_in_box']} vertices, a finer body (or the real fixture) over all of the box; a "
-                    "box ending at the body's face, or a mesh with vertices on the box's faces, tells a clamp "
-                    "held over more from a material change")
         if gr:
             return (f"E x {d['stiffness_factor']:.3g} on this mesh removes most of the gap but the once-refined "
                     "mesh does not: a uniform stiffness or density change of the material that this mesh's "
