@@ -1,5 +1,7 @@
 """A control case (truth = nominal material on a finer mesh) yields verdict []: the
 discretisation gap alone is not reported as an effect."""
+import numpy as np
+
 from matlearn.diagnosis import diagnose
 
 from diagnosis_cases import FAST, tiny_case
@@ -33,3 +35,18 @@ def test_truth_on_the_model_mesh_claims_no_effect(tmp_path):
     # here the truth *is* the model's mesh: the once-refined mesh moves away from it
     d = result["discretisation"]
     assert d["gap_refined_mesh"]["max_error_pct"] > 2 * result["gap_before"]["max_error_pct"]
+
+
+def test_stiff_one_tet_across_model_offset_from_its_lowest_modes(tmp_path):
+    """A bar one tet across, far too stiff (its once-refined mesh matches it at E x 0.5), with a
+    marker near every vertex. The offset's local fit from E x 1 stops in another basin (0.547,
+    4.6x the match residual); started also from the lowest modes' frequency ratio it reaches
+    the refined mesh's factor. And with every free vertex following a marker, the residual map
+    is the markers' own motion (the constrained run used to raise 'every vertex is fixed or
+    prescribed')."""
+    scene = tiny_case(tmp_path, "thin", seed=3, cells=(6, 1, 1), refine=3)
+    result = diagnose(scene, tmp_path / "out", progress=lambda m: None, **FAST)
+    d = result["discretisation"]
+    assert 0.4 < d["refined_mesh_modal_factor"] < 0.6
+    assert abs(np.log(d["refined_mesh_factor"] / d["refined_mesh_modal_factor"])) < 0.05
+    assert result["verdict"] == []

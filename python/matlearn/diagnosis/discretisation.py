@@ -20,6 +20,8 @@ DAMPING_FOLLOWS = False
 # the plausible ratios of successive unit changes of b (geometric decay with the damping; 1: linear)
 RATIO_RANGE = (0.2, 1.0)
 OFFSET_GRID = (-0.05, -0.1, -0.2, -0.35, -0.5, -0.7, -0.9, -1.2)
+# the local offset fit is checked against the first modes' stiffness ratio when they differ by more
+MODAL_GAP = 0.1
 
 
 def _refined_problem(P):
@@ -35,6 +37,34 @@ def _refined_problem(P):
     fine.disc_bias = {}
     fine.simulations = 0
     return fine
+
+
+def first_frequency(scene) -> float | None:
+    """The lowest angular frequency (rad/s) of the scene's nominal material about its rest shape,
+    clamped as the scene is; None without a clamp (rigid modes) or when the eigensolver fails."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    if len(scene.fixed) == 0:
+        return None
+    model = scene.model()
+    V = np.asarray(scene.mesh.vertices, float)
+    free = np.setdiff1d(np.arange(len(V)), scene.fixed)
+    dofs = (3 * free[:, None] + np.arange(3)).ravel()
+    K = model.stiffness(V, np.zeros_like(V)).tocsc()[dofs][:, dofs].tocsc()
+    m = np.repeat(np.asarray(model.vertex_mass, float)[free], 3)
+    try:
+        w2 = float(spla.eigsh(K, k=1, M=sp.diags(m).tocsc(), sigma=0, which="LM")[0][0])
+    except (RuntimeError, ValueError, spla.ArpackError):
+        return None
+    return float(np.sqrt(w2)) if w2 > 0 else None
+
+
+def modal_offset(P, fine) -> float | None:
+    """2 log(w_refined / w_coarse): the log stiffness factor with which the coarse mesh's lowest
+    mode matches the once-refined mesh's (None where either has none)."""
+    wc, wr = first_frequency(P.scene), first_frequency(fine.scene)
+    return None if wc is None or wr is None else float(2.0 * np.log(wr / wc))
 
 
 def _usable(b: np.ndarray) -> bool:
@@ -138,6 +168,22 @@ def discretisation(P, ctx, say, follow_damping: bool | None = None):
         if best[0] != 0.0:
             fit = fitting.refine(P, ctx, ["stiffness_scale"], {"stiffness_scale": best}, iterations=2,
                                  target=rf[first], recs=recs[:1])
+    # The local fit starts at 0 and an oscillation's phase makes its landscape multimodal: where
+    # the coarse mesh is far too stiff it stops in another basin (independent suites: L-brackets,
+    # plates and tori whose lowest modes ask 0.38-0.53 fitted 0.76-1.31, a refined mesh "stiffer"
+    # than its coarse one, and the whole baseline off by that much). The lowest modes' ratio is a
+    # second start; the better match is kept (the named suite's offsets agree with it within 0.1
+    # but one, and are left as they were).
+    theta_m = modal_offset(P, fine)
+    P.disc_modal_factor = None if theta_m is None else float(np.exp(theta_m))
+    if theta_m is not None and abs(theta_m - float(fit.params["stiffness_scale"][0])) > MODAL_GAP:
+        alt = fitting.refine(P, ctx, ["stiffness_scale"], {"stiffness_scale": [theta_m]}, iterations=2,
+                             target=rf[first], recs=recs[:1])
+        say(f"discretisation: the local offset fit {np.exp(fit.params['stiffness_scale'][0]):.3f} (rss "
+            f"{fit.rss:.3e}), from the lowest modes' ratio {np.exp(theta_m):.3f}: "
+            f"{np.exp(alt.params['stiffness_scale'][0]):.3f} (rss {alt.rss:.3e})")
+        if alt.rss < fit.rss:
+            fit = alt
     theta_r = float(fit.params["stiffness_scale"][0])
     b = rf - fitting.residual_of(P, ctx, fit.params, recs)
     lo, hi = sorted((DISC_RANGE[0] * theta_r, DISC_RANGE[1] * theta_r))
