@@ -477,7 +477,11 @@ def run_case(work: Path, name: str, effects, shape_kind, seed, fresh: bool, time
         info = json.loads((case / "truth.json").read_text())  # the case files are kept
         t0 = time.time() - info.get("build_s", 0.0)
     else:
-        info = build_case(work, name, effects, shape_kind, seed)
+        try:
+            info = build_case(work, name, effects, shape_kind, seed)
+        except RuntimeError as err:  # the truth itself cannot be simulated (e.g. its static pull fails)
+            return {"case": name, "true_effects": effects, "shape": shape_kind, "build_s": time.time() - t0,
+                    "error": f"truth could not be built: {err}"}
         info["build_s"] = time.time() - t0
         (case / "truth.json").write_text(json.dumps(info, indent=1, default=lambda o: np.asarray(o).tolist()))
     row = {"case": name, "true_effects": effects, "shape": shape_kind, "build_s": time.time() - t0,
