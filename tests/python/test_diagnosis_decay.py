@@ -138,9 +138,12 @@ def test_diagnose_reports_the_decay_and_claims_damping_from_it(tmp_path):
     w = rec["angular_frequency"]
     got = decay.predicted_decay(w, Damping(lead["parameters"]["alpha_mass"], lead["parameters"]["alpha_stiffness"]), 1e-3)
     assert got == pytest.approx(decay.predicted_decay(w, Damping(3.0, 1.5e-3), 1e-3), rel=0.2)
-    # the held-out gap shrinks beyond what the mesh's stiffness factor alone removes (most of
-    # this coarse bar's gap is its mesh: 5.9 % before, 3.7 % with the factor, 3.4 % with the damping)
-    assert lead["gap_after"]["max_error_pct"] < damped["discretisation"]["gap_with_offset"]["max_error_pct"]
+    # most of this coarse bar's held-out gap is its mesh: 5.9 % before, 1.70 % with the mesh's
+    # stiffness factor (fitted also from the lowest modes since session 26; 3.7 % with the old
+    # local fit) and 1.71 % with the damping added: the damping keeps what the factor removes
+    gap_factor = damped["discretisation"]["gap_with_offset"]["max_error_pct"]
+    assert gap_factor < 0.4 * damped["gap_before"]["max_error_pct"]
+    assert lead["gap_after"]["max_error_pct"] < 1.05 * gap_factor
     # a damping family claimed from the decays reports the share of the decay mismatch it
     # explains (its train-marker share is blind to the change)
     for e in damped["effects"]:
