@@ -211,6 +211,26 @@ def initial_state(scene, model, rec: Recording, embedding: Embedding | None = No
 
 
 # ---------------------------------------------------------------------------- simulation
+def follow_targets(scene, model, idx: np.ndarray, targets: np.ndarray, x0: np.ndarray, v0: np.ndarray,
+                   max_newton: int = 8, progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """(X, Vel), each (S+1, n, 3): the scene's constrained run from (x0, v0) whose vertices `idx`
+    follow `targets` (S+1, k, 3) at the simulation steps (one C++ call). Where every free vertex
+    is prescribed (a body one tet across with a marker near every vertex) there is nothing to
+    solve: the run is the targets, its velocities backward differences."""
+    V = np.asarray(scene.mesh.vertices, float)
+    if len(np.union1d(idx, scene.fixed)) == len(V):
+        X = np.repeat(V[None], len(targets), axis=0)
+        X[:, idx] = targets
+        Vel = np.zeros_like(X)
+        Vel[0] = v0
+        Vel[1:] = np.diff(X, axis=0) / scene.time_step
+        return X, Vel
+    integ = scene.integrator(model, max_newton=max_newton)
+    integ.set_prescribed(idx)
+    integ.set_state(x0, v0)
+    return integ.simulate_constrained(np.ascontiguousarray(targets[1:]), np.zeros_like(V), progress=progress)
+
+
 def simulation_times(scene, rec: Recording) -> np.ndarray:
     """Step times covering the recording: times[0] + h * (0..S), S = ceil(span / h)."""
     h = scene.time_step

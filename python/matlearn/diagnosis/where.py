@@ -65,20 +65,8 @@ def constrained_residual(problem, model, rec, max_frames: int = 30) -> ResidualF
     x0 = np.array(x0)
     x0[idx] = T_at[0]
     steps = len(sim_t) - 1
-    if len(np.union1d(idx, scene.fixed)) == len(V):
-        # every free vertex follows a marker or the drive (a body one tet across, markers on
-        # all of it): the constrained run is the targets, its velocities backward differences
-        X = np.repeat(V[None], steps + 1, axis=0)
-        X[:, idx] = T_at
-        Vel = np.zeros_like(X)
-        Vel[0] = v0
-        Vel[1:] = np.diff(X, axis=0) / h
-    else:
-        integ = scene.integrator(model, max_newton=problem.fast_newton)
-        integ.set_prescribed(idx)
-        integ.set_state(x0, v0)
-        # the whole constrained run in one C++ call; only a few sampled frames are analysed below
-        X, Vel = integ.simulate_constrained(T_at[1:], np.zeros_like(V))
+    # the whole constrained run in one C++ call; only a few sampled frames are analysed below
+    X, Vel = replay.follow_targets(scene, model, idx, T_at, x0, v0, max_newton=problem.fast_newton)
     frames = np.unique(np.linspace(1, steps, min(max_frames, steps)).astype(int))
     M = np.asarray(model.vertex_mass)[:, None]
     g = np.asarray(scene.gravity)[None]

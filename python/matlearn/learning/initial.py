@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..embedding import embed_points
-from ..replay import drive_vertices, interpolate_frames, simulation_times
+from ..replay import drive_vertices, follow_targets, interpolate_frames, simulation_times
 
 
 def fill_marker_gaps(times: np.ndarray, markers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -61,13 +61,5 @@ def initial_trajectory(scene, model, rec, embedding=None, progress=None) -> tupl
     x0, v0 = robust_initial_state(scene, model, rec, emb)
     x0 = np.array(x0, float)
     x0[idx] = steps_t[0]
-    if len(np.union1d(idx, np.asarray(scene.fixed))) == n:
-        # Every free vertex follows a marker or the drive: the trajectory is the targets.
-        X = np.repeat(V[None], len(sim_t), axis=0)
-        X[:, idx] = steps_t
-        return sim_t, X, idx
-    integ = scene.integrator(model)
-    integ.set_prescribed(idx)
-    integ.set_state(x0, np.zeros((n, 3)))
-    X, _ = integ.simulate_constrained(np.ascontiguousarray(steps_t[1:]), np.zeros((n, 3)), progress=progress)
+    X, _ = follow_targets(scene, model, idx, steps_t, x0, np.zeros((n, 3)), progress=progress)
     return sim_t, X, idx
