@@ -41,23 +41,21 @@ def _refined_problem(P):
 
 def first_frequency(scene) -> float | None:
     """The lowest angular frequency (rad/s) of the scene's nominal material about its rest shape,
-    clamped as the scene is; None without a clamp (rigid modes) or when the eigensolver fails."""
-    import scipy.sparse as sp
+    clamped as the scene is (release.vibration_modes); None without a clamp (rigid modes) or when
+    the eigensolver fails."""
     import scipy.sparse.linalg as spla
+
+    from ..release import vibration_modes
 
     if len(scene.fixed) == 0:
         return None
-    model = scene.model()
     V = np.asarray(scene.mesh.vertices, float)
     free = np.setdiff1d(np.arange(len(V)), scene.fixed)
-    dofs = (3 * free[:, None] + np.arange(3)).ravel()
-    K = model.stiffness(V, np.zeros_like(V)).tocsc()[dofs][:, dofs].tocsc()
-    m = np.repeat(np.asarray(model.vertex_mass, float)[free], 3)
     try:
-        w2 = float(spla.eigsh(K, k=1, M=sp.diags(m).tocsc(), sigma=0, which="LM")[0][0])
+        lam = vibration_modes(scene.model(), V, (3 * free[:, None] + np.arange(3)).ravel(), 1)[0]
     except (RuntimeError, ValueError, spla.ArpackError):
         return None
-    return float(np.sqrt(w2)) if w2 > 0 else None
+    return float(np.sqrt(lam[0]))
 
 
 def modal_offset(P, fine) -> float | None:

@@ -398,7 +398,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # coarse mesh takes (no effect added), so a user sees how much a finer mesh would remove
     disc_report = {"stiffness_factor": float(np.exp(ctx.offset_applied)),
                    "refined_mesh_factor": float(np.exp(ctx.offset_reference)),
-                   "refined_mesh_modal_factor": getattr(P, "disc_modal_factor", None),
+                   "refined_mesh_modal_factor": P.disc_modal_factor,
                    "factor_range": [float(np.exp(t)) for t in ctx.offset_range],
                    "gap_with_offset": _safe_gap(P, ctx, {}),
                    "gap_refined_mesh": _refined_gap(P)}

@@ -61,6 +61,7 @@ class Problem:
         self.disc_bias_damping = {}  # its change with the damping (fitting.discrepancy)
         self.disc_bias_ratio = None
         self.disc_weight_range = (0.0, 0.0)
+        self.disc_modal_factor = None  # the meshes' lowest-mode stiffness ratio (discretisation.modal_offset)
 
     @property
     def mesh(self):
