@@ -64,12 +64,10 @@ def main(argv=None):
           f"{'refined/model':>13s} {'truth/its refined':>17s}")
     for seed, shuffled in [(s, False) for s in args.seeds] + [(s, True) for s in args.shuffled]:
         shapes = di.shuffled_shapes(seed) if shuffled else [c[2] for c in di.CASES]
-        done = {}
         for i, ((name, _, _), kind) in enumerate(zip(di.CASES, shapes)):
             r = check_case(1000 * seed + i, kind)
             r.update(seed=seed, shuffled=shuffled, case=name)
             rows.append(r)
-            done[name] = r
             print(f"{seed:>6d}{'s' if shuffled else ' ':3s} {name:14s} {kind:10s} {r['model_tets']:>4d}/{r['truth_tets']:<5d} "
                   f"{r['truth_mesh_stiffness']:11.3f} {r['refined_mesh_stiffness']:13.3f} "
                   f"{r['truth_over_its_refinement']:17.3f}", flush=True)

@@ -1,7 +1,7 @@
 """`matlearn learn SCENE --out RUN`: learn an elastic + damping correction from the scene's train
 recordings (sparse reduced space-time optimisation, RBF stress fitting), score it on the test
-recordings, distil it into an MLP, and write RUN/model.npz + model.json (for `matlearn simulate --model RUN`), metrics.json,
-convergence.png and error_histograms.png.
+recordings, distil it into an MLP, and write RUN/model.npz + model.json (for `matlearn simulate
+--model RUN`), metrics.json, convergence.png and error_histograms.png.
 
 Recordings may be markers or point clouds (cloud_points/cloud_offsets/cloud_sigma): cloud-only
 recordings are tracked first with the physics-based tracker (progress shown, cached in

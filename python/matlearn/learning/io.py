@@ -84,8 +84,7 @@ def load_model(run_dir, kind: str | None = None):
         if use not in ("rbf", "mlp"):
             where = "kind" if kind else f"{run / MODEL_JSON}: 'use'"
             raise ValueError(f"{where} must be 'rbf' or 'mlp', got {use!r}")
-        kind = use
-        if kind == "rbf":
+        if use == "rbf":
             return load_rbf(run).correction()
         # the MLP reproduces the RBF's (dPh, dalpha); how the damping acts is the RBF's too
         c = mlp_correction(load_mlp(run))
