@@ -151,8 +151,12 @@ def test_cli_resumes_a_diagnosis_killed_by_sigkill(runs, tmp_path):
     cmd = [sys.executable, "-m", "matlearn", "diagnose", str(runs["scene"]), "--out", str(out), "--no-report"]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     folder = out / simcache.FOLDER
+
+    def finished():  # a simulation being written is a hidden ".KEY.PID.tmp.npz" until renamed
+        return len([f for f in folder.glob("*.npz") if not f.name.startswith(".")])
+
     t0 = time.time()
-    while time.time() - t0 < 120 and p.poll() is None and len(list(folder.glob("*.npz"))) < 60:
+    while time.time() - t0 < 120 and p.poll() is None and finished() < 60:
         time.sleep(0.05)
     assert p.poll() is None, "the diagnosis ended before it could be killed"
     p.send_signal(signal.SIGKILL)
@@ -160,7 +164,7 @@ def test_cli_resumes_a_diagnosis_killed_by_sigkill(runs, tmp_path):
     p.stdout.close()
     p.stderr.close()
     assert not (out / "diagnosis.json").exists()
-    kept = len([f for f in folder.glob("*.npz") if not f.name.startswith(".")])
+    kept = finished()
     assert kept >= 60
     # without --resume the command refuses the interrupted folder
     again = subprocess.run(cmd, capture_output=True, text=True)
