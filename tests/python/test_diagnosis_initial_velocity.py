@@ -163,3 +163,38 @@ def test_start_decision_survives_a_failing_held_pose(tmp_path, monkeypatch):
     auto = Problem(scene, estimate_velocity="auto")
     assert auto.start_velocity(auto.train[0]) is None
     assert not auto.start_info(auto.train[0])["moving"]
+
+
+def test_the_velocity_window_spans_a_quarter_period_whatever_the_rate():
+    """velocity_frames: a fixed 7 frames at 500 Hz span 12 ms, 1/9 of a 9 Hz period, where the
+    cubic's slope is so uncertain that a start at 0.45 m/s (0.4 mm marker noise) passes the noise
+    test as rest in 17 of 30 draws; the quarter-period window (14 frames) finds it in 28, with the
+    right velocity. At 120 Hz the window stays 7 frames; without a model frequency the
+    recording's own spectrum gives the period."""
+    from matlearn.diagnosis.problem import velocity_frames
+
+    K, rate, f, sigma, v = 20, 500.0, 9.0, 4e-4, 0.45
+    w = 2 * np.pi * f
+    t = np.arange(0.0, 0.2, 1.0 / rate)
+    found = {7: 0, "window": 0}
+    along = []
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        rest = rng.standard_normal((K, 3)) * 0.05
+        u = rng.standard_normal((K, 3))
+        u /= np.linalg.norm(u)
+        X = rest + (v / w) * np.sin(w * t)[:, None, None] * u + rng.normal(0, sigma, (len(t), K, 3))
+        rec = Recording(times=t + 0.7, marker_rest=rest, markers=X)
+        n = velocity_frames(rec, w)
+        assert n == 14  # 0, 2, ..., 26 ms: a quarter of 111 ms
+        assert abs(velocity_frames(rec, None) - n) <= 2  # the spectrum's peak (0.2 s resolves it coarsely)
+        found[7] += bool(np.any(marker_velocity(rec, 7)))
+        est = marker_velocity(rec, n)
+        if np.any(est):
+            found["window"] += 1
+            along.append(float(np.sum(est * u)) / v)
+    assert found[7] <= 15 and found["window"] >= 27, found
+    assert 0.85 < np.median(along) < 1.25, np.median(along)
+    slow = Recording(times=np.arange(30) / 120.0, marker_rest=rest, markers=rest + np.zeros((30, K, 3)))
+    assert velocity_frames(slow, w) == 7
+    assert velocity_frames(Recording(times=t[:12], marker_rest=rest, markers=X[:12]), w) == 7  # half at most

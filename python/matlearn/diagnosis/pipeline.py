@@ -27,7 +27,7 @@ import numpy as np
 from . import contract, decay, fitting, history, ranking, region, simcache, where
 from .discretisation import discretisation
 from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContext, describe
-from .problem import Problem
+from .problem import Problem, marker_spectrum_peak
 from .selection import (ADD_FACTOR, DISSIPATIVE, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE,
                         _add_nested_ties, _dof, _explained_excess, _forward_select, _linearisation_refuted,
                         _pair_challenge, _pair_rescue, _rank, _resolve_nested, _shortfall_replacements,
@@ -54,19 +54,12 @@ def dominant_omega(problem) -> float:
     """Angular frequency of the strongest marker oscillation in the train recordings (rad/s)."""
     best, span = (0.0, 0.0), 1.0
     for rec in problem.train:
-        m = np.nan_to_num(rec.markers - np.nanmean(rec.markers, axis=0))
-        if len(m) < 8:
+        got = marker_spectrum_peak(rec)
+        if got is None:
             continue
-        t = rec.times
-        span = max(span, t[-1] - t[0]) if best[0] == 0 else span
-        tu = np.linspace(t[0], t[-1], len(t))
-        sig = np.stack([np.interp(tu, t, m[:, k, d]) for k in range(m.shape[1]) for d in range(3)])
-        P = (np.abs(np.fft.rfft(sig * np.hanning(len(tu)), axis=1)) ** 2).sum(0)
-        f = np.fft.rfftfreq(len(tu), tu[1] - tu[0])
-        P[0] = 0
-        i = int(np.argmax(P))
-        if P[i] > best[0]:
-            best, span = (P[i], f[i]), t[-1] - t[0]
+        span = max(span, got[2]) if best[0] == 0 else span
+        if got[0] > best[0]:
+            best, span = got[:2], got[2]
     return float(2 * np.pi * max(best[1], 1.0 / span))
 
 

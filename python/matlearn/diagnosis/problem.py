@@ -47,6 +47,7 @@ class Problem:
             raise ValueError(f"estimate_velocity must be False, True or 'auto', got {estimate_velocity!r}")
         self.estimate_velocity = estimate_velocity
         self._moving = {}  # id(rec) -> (rec, marker velocities (K, 3) or None, info): "auto" decisions
+        self._nominal_omega = ()  # (lowest angular frequency or None,) once computed
         self.object_size = self.scene.object_size
         self._emb = {}
         self.simulations = 0
@@ -158,6 +159,14 @@ class Problem:
             sim = replay.simulate_recording(self.scene, model, rec, state=state, max_newton=newton)
         self.simulations += 1
         return replay.predict_markers(self.scene, model, rec, sim=sim, embedding=self.embedding(rec)), sim
+
+    def nominal_omega(self) -> float | None:
+        """The nominal model's lowest angular frequency on the scene's mesh (rad/s; None without
+        a clamp or when the eigensolver fails), computed once."""
+        if not self._nominal_omega:
+            from .discretisation import first_frequency
+            self._nominal_omega = (first_frequency(self.scene),)
+        return self._nominal_omega[0]
 
     def start_velocity(self, rec):
         """The "auto" start of `rec`: its marker velocities (K, 3) at rec.times[0] when it starts
@@ -293,6 +302,51 @@ def track_noise(*tracks) -> float:
     return float(np.sqrt(np.median(np.concatenate(vals)) / (70 * 0.455)))
 
 
+def marker_spectrum_peak(rec: Recording):
+    """(power, frequency Hz, span s) of the strongest marker oscillation of `rec` (the summed
+    power spectrum of every marker coordinate, resampled uniformly, Hann window); None for fewer
+    than 8 frames."""
+    m = np.nan_to_num(rec.markers - np.nanmean(rec.markers, axis=0))
+    if len(m) < 8:
+        return None
+    t = rec.times
+    tu = np.linspace(t[0], t[-1], len(t))
+    sig = np.stack([np.interp(tu, t, m[:, k, d]) for k in range(m.shape[1]) for d in range(3)])
+    P = (np.abs(np.fft.rfft(sig * np.hanning(len(tu)), axis=1)) ** 2).sum(0)
+    f = np.fft.rfftfreq(len(tu), tu[1] - tu[0])
+    P[0] = 0
+    i = int(np.argmax(P))
+    return float(P[i]), float(f[i]), float(t[-1] - t[0])
+
+
+# start_in_motion: the first frames' window in which the markers' velocity is estimated spans at
+# least this fraction of the object's lowest period (and at least START_FRAMES frames)
+START_WINDOW = 0.25
+START_FRAMES = 7
+
+
+def velocity_frames(rec: Recording, omega: float | None, minimum: int = START_FRAMES,
+                    window: float = START_WINDOW) -> int:
+    """How many first frames marker_velocity fits: those within `window` of the period 2 pi /
+    omega (rad/s; the nominal model's lowest mode, Problem.nominal_omega; None: the recording's
+    own strongest oscillation, marker_spectrum_peak, which a short recording resolves poorly), at
+    least `minimum`, at most half the recording. A fixed frame count made the window depend on
+    the rate: 7 frames at 500 Hz span 12 ms, 1/9 of a 9 Hz period, over which the cubic's slope is
+    so uncertain that a start at ~1 m/s of a 0.19 m cylinder passed the noise test as rest
+    (independent suite, seed 12's control, a recording starting 38 ms after a release: 0.99 m/s
+    against a 0.32 m/s deviation; over 13 frames 1.10 against 0.13). The coarse nominal model is
+    too stiff, so its period is short and the window errs short; at 120-240 Hz and the suites'
+    5-13 Hz it stays 7 frames."""
+    n = minimum
+    f = None if omega is None else omega / (2 * np.pi)
+    if f is None:
+        got = marker_spectrum_peak(rec)
+        f = None if got is None else max(got[1], 1.0 / max(got[2], 1e-12))
+    if f is not None and f > 0:
+        n = max(n, int(np.sum(rec.times - rec.times[0] <= window / f)))
+    return int(min(n, max(minimum, rec.num_frames // 2)))
+
+
 def marker_velocity(rec: Recording, frames: int = 7, modes: int = 4, reference=None) -> np.ndarray:
     """(K, 3) marker velocities at rec.times[0], NaN for markers seen in at most half the frames
     (or with fewer than 5 frames); with `reference` (T, K, 3), the velocity of the markers
@@ -354,7 +408,7 @@ START_SCALES = tuple(float(x) for x in np.exp(np.arange(np.log(0.3), np.log(2.5)
 START_EXPLAINED = 0.5
 
 
-def start_in_motion(problem, rec: Recording, frames: int = 7, scales=START_SCALES):
+def start_in_motion(problem, rec: Recording, frames: int | None = None, scales=START_SCALES):
     """Whether `rec` (no drive points, not said to start at rest) starts in motion, decided from
     its own data: (marker velocities (K, 3) or None, info dict).
 
@@ -363,7 +417,9 @@ def start_in_motion(problem, rec: Recording, frames: int = 7, scales=START_SCALE
        carries what a start from rest does in the first frames (a release's acceleration and
        its high-frequency start, which a marker-only estimate reads as a velocity).
     2. The velocity of the markers relative to that prediction (marker_velocity with the
-       prediction as reference) must exceed what the marker noise explains (its own test).
+       prediction as reference, over `frames` first frames, by default velocity_frames: a
+       quarter of the nominal model's lowest period) must exceed what the marker noise explains
+       (its own test).
     3. The recording simulated from the same pose with that velocity (at every scale again)
        must remove at least START_EXPLAINED of the rest start's residual above the marker
        noise, each start at its own best scale: a start in motion is one more explanation, held
@@ -371,6 +427,7 @@ def start_in_motion(problem, rec: Recording, frames: int = 7, scales=START_SCALE
     from ..materials import Material
 
     info = {"moving": False}
+    frames = velocity_frames(rec, problem.nominal_omega()) if frames is None else frames
     if rec.at_rest_initially or rec.has_drive or rec.num_frames < max(frames, 5) + 1:
         return None, info
     scene, size = problem.scene, problem.object_size
