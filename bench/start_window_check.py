@@ -1,7 +1,10 @@
-"""The start decision of the diagnosis (problem.start_in_motion) with the old fixed 7-frame
-velocity window and with the quarter-period window (problem.velocity_frames), on every recording
-of the given scenes that is not declared at rest and has no driven points (session 27). Prints
-one line per recording and "FLIP" where the two decide differently.
+"""The start decision of the diagnosis (problem.start_in_motion) as it was until session 27 (the
+marker velocity over a fixed 7 frames, mapped onto the held pose) and as it is now (over a
+quarter of the nominal model's lowest period, problem.velocity_frames, with the modal fit,
+problem.modal_velocity, where the mapped start fails or fits worse than rest), on every
+recording of the given scenes that is not declared at rest and has no driven points. Prints one
+line per recording and "CHANGED" where the two decide differently (at rest / moving, or which
+start).
 
     python bench/start_window_check.py WORK/*/scene.toml
 """
@@ -12,27 +15,38 @@ import sys
 
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
-from matlearn.diagnosis.problem import Problem, start_in_motion, velocity_frames  # noqa: E402
+from matlearn.diagnosis import problem as prob  # noqa: E402
+
+
+def decide(P, rec, old: bool) -> dict:
+    modal = prob.START_MODAL
+    try:
+        prob.START_MODAL = not old and modal
+        mv, info = prob.start_in_motion(P, rec, frames=7 if old else None)
+    finally:
+        prob.START_MODAL = modal
+    if info.get("moving") and "start" not in info:
+        info["start"] = "markers"
+    return info
 
 
 def main(scenes) -> int:
-    flips = total = 0
+    changed = total = 0
     for scene in scenes:
-        P = Problem(scene, estimate_velocity=False)
-        w = P.nominal_omega()
+        P = prob.Problem(scene, estimate_velocity=False)
         for role, recs in (("train", P.train), ("test", P.test)):
             for i, rec in enumerate(recs):
                 if rec.at_rest_initially or rec.has_drive:
                     continue
-                n = velocity_frames(rec, w)
-                old = start_in_motion(P, rec, frames=7)[1]
-                new = old if n == 7 else start_in_motion(P, rec, frames=n)[1]
-                flip = old["moving"] != new["moving"]
-                flips, total = flips + flip, total + 1
-                rss = {k: round(v, 5) for k, v in new.items() if k.startswith("rss")}
-                print(f"{scene} {role} {i}: {n} frames, moving {old['moving']} -> {new['moving']} {rss}"
-                      f"{'  FLIP' if flip else ''}", flush=True)
-    print(f"{flips} of {total} recordings decided differently")
+                a, b = decide(P, rec, True), decide(P, rec, False)
+                key = [(d.get("moving", False), d.get("start", "rest") if d.get("moving") else "rest") for d in (a, b)]
+                diff = key[0] != key[1]
+                changed, total = changed + diff, total + 1
+                rss = {k: round(v, 5) for k, v in b.items() if k.startswith("rss")}
+                print(f"{scene} {role} {i}: {prob.velocity_frames(rec, P.nominal_omega())} frames, "
+                      f"{key[0][1]} -> {key[1][1]} {rss} (before: {a.get('rss_moving', '-')})"
+                      f"{'  CHANGED' if diff else ''}", flush=True)
+    print(f"{changed} of {total} recordings decided differently")
     return 0
 
 
