@@ -1,10 +1,9 @@
 """The start decision of the diagnosis (problem.start_in_motion) as it was until session 27 (the
-marker velocity over a fixed 7 frames, mapped onto the held pose) and as it is now (over a
-quarter of the nominal model's lowest period, problem.velocity_frames, with the modal fit,
-problem.modal_velocity, where the mapped start fails or fits worse than rest), on every
-recording of the given scenes that is not declared at rest and has no driven points. Prints one
-line per recording and "CHANGED" where the two decide differently (at rest / moving, or which
-start).
+marker velocity over a fixed 7 frames) and as it is now (over a quarter of the nominal model's
+lowest period, problem.velocity_frames), on every recording of the given scenes that is not
+declared at rest and has no driven points. Prints one line per recording and "CHANGED" where the
+two decide differently. (Where problem.START_MODAL exists, as in the experiment 3f1a7ca, the new
+decision also tries the modal start.)
 
     python bench/start_window_check.py WORK/*/scene.toml
 """
@@ -19,12 +18,14 @@ from matlearn.diagnosis import problem as prob  # noqa: E402
 
 
 def decide(P, rec, old: bool) -> dict:
-    modal = prob.START_MODAL
+    modal = getattr(prob, "START_MODAL", None)
     try:
-        prob.START_MODAL = not old and modal
+        if modal is not None:
+            prob.START_MODAL = not old and modal
         mv, info = prob.start_in_motion(P, rec, frames=7 if old else None)
     finally:
-        prob.START_MODAL = modal
+        if modal is not None:
+            prob.START_MODAL = modal
     if info.get("moving") and "start" not in info:
         info["start"] = "markers"
     return info

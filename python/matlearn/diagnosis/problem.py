@@ -128,12 +128,10 @@ class Problem:
         if self.estimate_velocity is True and not rec.at_rest_initially and not rec.has_drive:
             state = (state[0], initial_velocity(self.scene, model, rec, self.embedding(rec), state[0]))
         elif self.estimate_velocity == "auto":
-            start = self.start_velocity(rec)
-            if start is not None and start[0] == "markers":
+            mv = self.start_velocity(rec)
+            if mv is not None:
                 state = (state[0], initial_velocity(self.scene, model, rec, self.embedding(rec), state[0],
-                                                    marker_v=start[1]))
-            elif start is not None:
-                state = (state[0], start[1])
+                                                    marker_v=mv))
         return self.simulate_markers(model, rec, state, newton)
 
     def remembered(self, rec, parts: tuple, compute, simulations: int = 1):
@@ -171,9 +169,8 @@ class Problem:
         return self._nominal_omega[0]
 
     def start_velocity(self, rec):
-        """The "auto" start of `rec` (start_in_motion, decided once per recording): None when it
-        starts at rest, else ("markers", marker velocities (K, 3) at rec.times[0], mapped onto each
-        model's held pose) or ("vertices", vertex velocities (n, 3), the modal fit)."""
+        """The "auto" start of `rec`: its marker velocities (K, 3) at rec.times[0] when it starts
+        in motion (start_in_motion), None when it starts at rest (decided once per recording)."""
         key = id(rec)
         hit = self._moving.get(key)
         if hit is None or hit[0] is not rec:
@@ -411,41 +408,6 @@ START_SCALES = tuple(float(x) for x in np.exp(np.arange(np.log(0.3), np.log(2.5)
 START_EXPLAINED = 0.5
 
 
-START_MODAL = True
-START_MODES = 6
-
-
-def modal_velocity(problem, rec: Recording, model, x0: np.ndarray, pred_rest: np.ndarray, frames: int,
-                   modes: int = START_MODES) -> np.ndarray:
-    """(n, 3) start velocity in the model's `modes` lowest vibration modes (at x0, the clamp
-    held) fitted by least squares to what the markers do beyond `pred_rest` (the prediction from
-    rest) over the first `frames` frames: one simulation per mode (the replay is linear in the
-    start velocity to first order)."""
-    from ..release import vibration_modes
-
-    n = len(x0)
-    keep = np.setdiff1d(np.arange(n), np.asarray(problem.scene.fixed))
-    dofs = (3 * keep[:, None] + np.arange(3)).ravel()
-    lam, Phi = vibration_modes(model, x0, dofs, modes)
-    seen = rec.seen[:frames]
-    target = (rec.markers[:frames] - pred_rest[:frames])[seen].ravel()
-    cols = []
-    for j in range(Phi.shape[1]):
-        c = 0.01 * problem.object_size * float(np.sqrt(lam[j])) / max(float(np.abs(Phi[:, j]).max()), 1e-300)
-        v = np.zeros(3 * n)
-        v[dofs] = c * Phi[:, j]
-        v = v.reshape(n, 3)
-        pred = problem.remembered(
-            rec, ("start", problem.fast_newton, problem.fingerprint(model), x0, v),
-            lambda: (problem.simulate_markers(model, rec, (x0, v), problem.fast_newton)[0],))[0]
-        cols.append((pred[:frames] - pred_rest[:frames])[seen].ravel() / c)
-    G = np.stack(cols, axis=1)
-    a = np.linalg.lstsq(G, target, rcond=None)[0]
-    v = np.zeros(3 * n)
-    v[dofs] = Phi @ a
-    return v.reshape(n, 3)
-
-
 def start_in_motion(problem, rec: Recording, frames: int | None = None, scales=START_SCALES):
     """Whether `rec` (no drive points, not said to start at rest) starts in motion, decided from
     its own data: (marker velocities (K, 3) or None, info dict).
@@ -498,21 +460,13 @@ def start_in_motion(problem, rec: Recording, frames: int | None = None, scales=S
     rss_rest, s_rest, pred_rest = scan(zero)
     if pred_rest is None:
         return None, info
-    info.update(rss_rest=rss_rest, scale_rest=s_rest)
-    noise = (track_noise(rec.markers) / size) ** 2 * 3 * int(seen.sum())
-    best = (rss_rest, None, None)  # (rss, start, its best scale)
     mv = marker_velocity(rec, frames, reference=pred_rest)
-    if not np.any(np.nan_to_num(mv)):  # no motion beyond the noise: at rest
-        info.update(rss_noise=noise, start="rest")
+    info.update(rss_rest=rss_rest, scale_rest=s_rest)
+    if not np.any(np.nan_to_num(mv)):
         return None, info
-    # the start velocity: the marker velocities mapped onto the held pose (the pose held at the best
-    # scale; where that static solve fails, a soft scale under a large first pose, at the nominal
-    # stiffness), and only where that mapping fails or fits worse than a start at rest, the modal
-    # fit (modal_velocity: the mapping of a few markers' velocities onto the body can be far off,
-    # independent seed 12's strain-dependent plate: rss from rest 0.33, mapped 0.72, modal 0.11,
-    # noise 0.05). Both only once the markers show motion. The modal fit is not a rival everywhere:
-    # it also absorbs a held pose's error, and as the better of the two it "moved" the named
-    # compression bar's release (rss 6.2e-3 -> 3.3e-3, noise 1.6e-3) and a release recorded at rest.
+    # the velocity's pose is held at the best scale; where that static solve fails (a soft scale
+    # under a large first pose) at the nominal stiffness; where both fail the recording starts
+    # at rest (a start decision must never stop the diagnosis)
     v = None
     for s in dict.fromkeys((s_rest, 1.0)):
         try:
@@ -520,25 +474,13 @@ def start_in_motion(problem, rec: Recording, frames: int | None = None, scales=S
             break
         except RuntimeError as err:
             info.setdefault("velocity_failures", []).append({"scale": float(s), "error": str(err)[:120]})
-    if v is not None:
-        rss_moving, s_moving, _ = scan(v)
-        info.update(rss_moving=rss_moving, scale_moving=s_moving)
-        if rss_moving < best[0]:
-            best = (rss_moving, ("markers", mv), s_moving)
-    if START_MODAL and best[1] is None:
-        try:
-            vm = modal_velocity(problem, rec, model_at(s_rest), x0, pred_rest, frames)
-        except (RuntimeError, ValueError) as err:
-            info["modal_failure"] = str(err)[:120]
-            vm = None
-        if vm is not None:
-            rss_modal, s_modal, _ = scan(vm)
-            info.update(rss_modal=rss_modal, scale_modal=s_modal)
-            if rss_modal < best[0]:
-                best = (rss_modal, ("vertices", vm), s_modal)
-    moving = best[1] is not None and rss_rest - best[0] >= START_EXPLAINED * max(rss_rest - noise, 0.0)
-    info.update(rss_noise=noise, moving=bool(moving), start=best[1][0] if moving else "rest")
-    return (best[1] if moving else None), info
+    if v is None:
+        return None, info
+    rss_moving, s_moving, _ = scan(v)
+    noise = (track_noise(rec.markers) / size) ** 2 * 3 * int(seen.sum())
+    moving = rss_rest - rss_moving >= START_EXPLAINED * max(rss_rest - noise, 0.0) and rss_moving < rss_rest
+    info.update(rss_moving=rss_moving, scale_moving=s_moving, rss_noise=noise, moving=bool(moving))
+    return (mv if moving else None), info
 
 
 def stack_residuals(recs, predict, object_size: float) -> np.ndarray:
