@@ -198,3 +198,46 @@ def test_the_velocity_window_spans_a_quarter_period_whatever_the_rate():
     slow = Recording(times=np.arange(30) / 120.0, marker_rest=rest, markers=rest + np.zeros((30, K, 3)))
     assert velocity_frames(slow, w) == 7
     assert velocity_frames(Recording(times=t[:12], marker_rest=rest, markers=X[:12]), w) == 7  # half at most
+
+
+def test_a_start_must_also_fit_the_frames_after_its_window(tmp_path, monkeypatch):
+    """start_in_motion's out-of-window check. The nominal model is the truth; the markers follow a
+    start with velocity v* over the velocity window and fall back towards the start from rest
+    after it (30 % of v*'s deviation left). The start with v* then removes over half the rest
+    start's residual above the noise over the whole recording (the old rule: moving), but fits the
+    frames after the window worse than the start at rest: at rest. Markers that keep following v*
+    after the window: moving."""
+    from matlearn import replay
+    from matlearn.diagnosis import problem as prob
+    from matlearn.diagnosis.problem import start_in_motion, velocity_frames
+
+    bar = meshes.bar(L, W, W, (5, 2, 2))
+    mat, dmp = Material("corotated", E0, 0.4, 1000.0), Damping(0, 0.002)
+    tip = [[0.75 * L, -1, -1], [1, 1, 1]]
+    scene = make_case(tmp_path, "glitch", bar, mat, dmp, bar, mat, dmp, [[-1, -1, -1], [1e-6, 1, 1]],
+                      [Motion("release", "train", 0.04, load={"box": tip, "force": [0, -0.25, 0.1]})],
+                      marker_fraction=0.5, noise=2e-5, seed=0)
+    path = scene.parent / "train_0.npz"
+    P = Problem(scene)
+    rec = P.train[0]
+    n = velocity_frames(rec, P.nominal_omega())
+    model = P.scene.model()
+    x0 = replay.initial_state(P.scene, model, rec, P.embedding(rec))[0]
+    vstar = np.zeros_like(x0)
+    vstar[:, 1] = 0.05 * (np.asarray(P.scene.mesh.vertices)[:, 0] / L) ** 2  # a bending swing, m/s
+    rest = P.simulate_markers(model, rec, (x0, 0 * x0), P.fast_newton)[0]
+    moved = P.simulate_markers(model, rec, (x0, vstar), P.fast_newton)[0]
+    noise = np.random.default_rng(0).normal(0, 2e-5, rest.shape)
+    monkeypatch.setattr(prob, "initial_velocity", lambda *a, **k: vstar)  # the mapped start is v*
+    info = {}
+    for after in (0.3, 1.0):
+        share = np.full(rec.num_frames, after)
+        share[:n] = 1.0
+        save_recording(Recording(times=rec.times, marker_rest=rec.marker_rest,
+                                 markers=rest + share[:, None, None] * (moved - rest) + noise), path)
+        P = Problem(scene)
+        info[after] = start_in_motion(P, P.train[0])[1]
+    i = info[0.3]
+    assert i["rss_rest"] - i["rss_moving"] >= 0.5 * (i["rss_rest"] - i["rss_noise"])  # passes the old rule
+    assert i["rss_moving_after"] > i["rss_rest_after"] and not i["moving"]
+    assert info[1.0]["moving"] and info[1.0]["rss_moving_after"] < info[1.0]["rss_rest_after"]
