@@ -335,8 +335,8 @@ def velocity_frames(rec: Recording, omega: float | None, minimum: int = START_FR
     so uncertain that a start at ~1 m/s of a 0.19 m cylinder passed the noise test as rest
     (independent suite, seed 12's control, a recording starting 38 ms after a release: 0.99 m/s
     against a 0.32 m/s deviation; over 13 frames 1.10 against 0.13). The coarse nominal model is
-    too stiff, so its period is short and the window errs short; at 120-240 Hz and the suites'
-    5-13 Hz it stays 7 frames."""
+    too stiff, so its period is short and the window errs short; at 120 Hz and the suites' 5-13 Hz
+    it stays 7 frames (240 Hz: 7-9, 500 Hz: 11-19, 1 kHz: 14-27)."""
     n = minimum
     f = None if omega is None else omega / (2 * np.pi)
     if f is None:
