@@ -33,6 +33,7 @@ def _refined_problem(P):
     fine.__dict__.update(P.__dict__)
     fine.scene = P.refined_scene()
     fine._emb = {}
+    fine._nominal_omega = ()  # its own scene's lowest mode (P's start decisions are shared)
     fine._rest_offsets = {}
     fine.disc_bias = {}
     fine.simulations = 0
@@ -61,7 +62,7 @@ def first_frequency(scene) -> float | None:
 def modal_offset(P, fine) -> float | None:
     """2 log(w_refined / w_coarse): the log stiffness factor with which the coarse mesh's lowest
     mode matches the once-refined mesh's (None where either has none)."""
-    wc, wr = first_frequency(P.scene), first_frequency(fine.scene)
+    wc, wr = P.nominal_omega(), fine.nominal_omega()
     return None if wc is None or wr is None else float(2.0 * np.log(wr / wc))
 
 
