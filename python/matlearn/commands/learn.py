@@ -9,7 +9,8 @@ RUN/tracked/ so --resume does not track again) and learned through their tracked
 
 `--start best` learns from the nominal and from the fitted parameters (RUN/start_nominal,
 RUN/start_baseline, each with its own metrics.json and checkpoints) and keeps the model whose
-learned train error is lower (RUN/best_start.json)."""
+learned train error is lower (RUN/best_start.json). `--start field` learns from the fitted parameters
+with a per-element Young's modulus fitted on top (learning/field.py: heterogeneous objects)."""
 from __future__ import annotations
 
 import json
@@ -68,6 +69,9 @@ def run(args) -> int:
         mlp, tinfo = train_mlp(X, Y, seed=args.seed)
         summary["distill"] = {**tinfo, **compare(params.correction(), mlp_correction(mlp), X, Y)}
     base = {"base_material": start["material"], "base_damping": start["damping"]} if "material" in start else {}
+    if "material_homogeneous" in start:  # a stiffness field: what another mesh gets (io.scene_model)
+        base["base_material_homogeneous"] = start["material_homogeneous"]
+        base["base_material_mesh"] = start["material_mesh"]
     save_model(out, params, mlp, meta={"scene": summary["scene"], "best_iteration": res["best_iteration"],
                                        "start": args.start, **base})
     plot_convergence(res["metrics"], out / "convergence.png")
@@ -97,12 +101,15 @@ def register(subparsers) -> None:
                         "min(1, a_rms h^2 / sigma_obs) from the scan noise, see docs/point_clouds.md)")
     p.add_argument("--modes", type=int, default=20, help="POD modes r (default 20)")
     p.add_argument("--centers", type=int, default=24, help="RBF centres (default 24)")
-    p.add_argument("--start", choices=("nominal", "baseline", "best"), default="nominal",
+    p.add_argument("--start", choices=("nominal", "baseline", "field", "best"), default="nominal",
                    help="start from the scene's nominal parameters, or from E, nu, alpha_K fitted to the "
                         "train recordings first (alpha_M held: the Wang-2015 baseline less the term the "
                         "learner cannot undo; the learned model then never fits the train recordings "
-                        "worse than that fit), or best: learn from both (RUN/start_nominal, "
-                        "RUN/start_baseline) and keep the lower learned train error (twice the time)")
+                        "worse than that fit), or field: that fit plus a per-element Young's modulus "
+                        "fitted on top (a heterogeneous object: layers, inclusions; one simulation per "
+                        "element or patch and iteration), or best: learn from the first two "
+                        "(RUN/start_nominal, RUN/start_baseline) and keep the lower learned train error "
+                        "(twice the time)")
     p.add_argument("--no-distill", action="store_true", help="skip the MLP distillation")
     p.add_argument("--tangent-damping", action="store_true",
                    help="the stiffness-proportional Rayleigh damping acts on the corrected tangent "

@@ -98,11 +98,21 @@ def load_model(run_dir, kind: str | None = None):
 def scene_model(scene, run_dir, kind: str | None = None):
     """The learned model of run `run_dir` on `scene`: the scene's nominal material and damping
     (or the run's `base_material` / `base_damping`, when it started from the baseline fit) plus
-    the learned correction."""
+    the learned correction. A run started from a stiffness field (start "field") applies its
+    per-element modulus on the mesh it was fitted on only; another mesh gets the field's
+    volume-weighted log-mean (`base_material_homogeneous`)."""
+    from .field import mesh_fingerprint
     from .start import damping_from_dict, material_from_dict
 
     correction = load_model(run_dir, kind)  # checks the folder and its files
     info = json.loads((Path(run_dir) / MODEL_JSON).read_text())
     mat = material_from_dict(info["base_material"]) if info.get("base_material") else None
+    if info.get("base_material_mesh") and info["base_material_mesh"] != mesh_fingerprint(scene.mesh):
+        # a per-element stiffness field (start "field") belongs to the mesh it was fitted on:
+        # another mesh gets the field's volume-weighted log-mean modulus
+        mat = material_from_dict(info["base_material_homogeneous"])
+    elif mat is not None and np.ndim(mat.youngs_modulus) and np.size(mat.youngs_modulus) != scene.mesh.num_tets:
+        raise ValueError(f"{run_dir}: the learned model has a per-element Young's modulus for "
+                         f"{np.size(mat.youngs_modulus)} tets; this scene's mesh has {scene.mesh.num_tets}")
     damp = damping_from_dict(info["base_damping"]) if info.get("base_damping") else None
     return scene.model(correction, material=mat, damping=damp)

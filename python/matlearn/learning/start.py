@@ -20,6 +20,13 @@ stored with the learned model (io.save_model meta `base_material` / `base_dampin
 The start's damping has no strain polynomials (mass_poly / stiffness_poly of the nominal are
 dropped, as in the baseline).
 
+"field" start (:func:`field_start`): the baseline fit, then every element (or spatial patch) its
+own Young's modulus fitted on top of it to the train recordings (learning/field.py): for
+objects whose stiffness varies in space (laminates, inclusions, a truth meshed finer than the
+model), which a correction of the principal stretches, the same in every element, cannot
+represent. Not part of "best" (a field always lowers the train error; whether the object is
+heterogeneous is the user's knowledge, or the diagnosis's `heterogeneity`).
+
 "best" start (:func:`learn_best_start`): the loop is run from both starts (RUN/start_nominal,
 RUN/start_baseline) and the learned model with the lower *train* max error is kept (ties: the
 baseline start); the test recordings are never consulted. Why: neither start dominates. From the
@@ -46,8 +53,8 @@ from .baseline import fit_parameters
 
 START_JSON = "start.json"
 BEST_JSON = "best_start.json"
-STARTS = ("nominal", "baseline")
-MODES = STARTS + ("best",)
+STARTS = ("nominal", "baseline")  # the starts "best" compares
+MODES = STARTS + ("field", "best")
 
 
 def spec_dict(spec) -> dict:
@@ -127,14 +134,47 @@ def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluation
     return with_parameters(scene, fit["material"], fit["damping"]), info
 
 
+def field_start(scene, run_dir=None, warm: dict | None = None, max_evaluations: int = 20, log=None,
+                laws: tuple | None = None, smooth: float = 0.3, iterations: int = 8,
+                max_patches: int = 128):
+    """(scene with the baseline fit and a per-element stiffness field as nominal, start info):
+    :func:`baseline_start` (not cached on its own), then learning.field.fit_stiffness_field on
+    top of it (smooth, iterations, max_patches: its arguments). Cached in RUN/start.json like
+    the baseline start; the info also holds the field's volume-weighted log-mean material
+    (`material_homogeneous`), what the learned model uses on another mesh (io.scene_model)."""
+    from .field import fit_stiffness_field, homogeneous, mesh_fingerprint
+
+    cache = Path(run_dir) / START_JSON if run_dir is not None else None
+    info = None
+    if cache is not None and cache.exists():
+        doc = json.loads(cache.read_text())
+        if doc.get("start") == "field":
+            info = doc
+    if info is None:
+        bscene, binfo = baseline_start(scene, None, warm=warm, max_evaluations=max_evaluations, log=log,
+                                       laws=laws)
+        mat, finfo = fit_stiffness_field(bscene, bscene.material, bscene.damping, smooth=smooth,
+                                         iterations=iterations, max_patches=max_patches, log=log)
+        info = {**binfo, "start": "field", "material": spec_dict(mat),
+                "material_homogeneous": spec_dict(homogeneous(mat, scene.mesh.rest_volumes)),
+                "material_mesh": mesh_fingerprint(scene.mesh),
+                "baseline_material": binfo["material"], "field": finfo}
+        if cache is not None:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            cache.write_text(json.dumps(info, indent=1))
+    return with_parameters(scene, material_from_dict(info["material"]), damping_from_dict(info["damping"])), info
+
+
 def start_scene(scene, start: str, run_dir=None, warm: dict | None = None, max_evaluations: int = 20,
                 log=None, laws: tuple | None = None):
-    """The scene the loop learns on for `start` ("nominal" or "baseline"; laws: those the
-    baseline start fits, :func:`baseline_start`) and the start info."""
-    if start not in STARTS:
-        raise ValueError(f"start must be one of {STARTS}, got {start!r}")
+    """The scene the loop learns on for `start` ("nominal", "baseline" or "field"; laws: those
+    the baseline start fits, :func:`baseline_start`, :func:`field_start`) and the start info."""
+    if start not in STARTS + ("field",):
+        raise ValueError(f"start must be one of {STARTS + ('field',)}, got {start!r}")
     if start == "nominal":
         return scene, {"start": "nominal"}
+    if start == "field":
+        return field_start(scene, run_dir, warm=warm, max_evaluations=max_evaluations, log=log, laws=laws)
     return baseline_start(scene, run_dir, warm=warm, max_evaluations=max_evaluations, log=log, laws=laws)
 
 
@@ -184,7 +224,8 @@ def chosen_run(run_dir) -> Path:
 
 def learn_from(scene, start: str, run_dir, options=None, warm: dict | None = None, max_evaluations: int = 20,
                resume: bool = False, log=None, laws: tuple | None = None):
-    """Learn from the start `start` (one of MODES: "nominal", "baseline", or "best" for both,
+    """Learn from the start `start` (one of MODES: "nominal", "baseline", "field" (the baseline
+    fit with a per-element stiffness field, :func:`field_start`), or "best" for the first two,
     :func:`learn_best_start`; laws: those the baseline start fits). Returns (the scene learned on, start info, learn result, run folder
     of the kept model)."""
     if start == "best":
