@@ -7,7 +7,8 @@ elements hold different fractions of a stiff phase. The field start gives every 
 on larger meshes, every spatial patch) its own Young's modulus on top of the fitted baseline:
 
     E_e = E_baseline exp(q_p(e)),    p(e) the patch of element e (one per element up to
-                                     `max_patches`, else k-means patches of the tet centroids)
+                                     `max_patches`, else k-means patches of the tet centroids,
+                                     volume-weighted)
 
 q is fitted to the train recordings' markers by a trust-region Gauss-Newton fit on full
 simulations (scipy.optimize.least_squares, finite-difference Jacobian: one simulation per patch
@@ -32,7 +33,6 @@ from __future__ import annotations
 import hashlib
 
 import numpy as np
-from scipy.cluster.vq import kmeans2
 from scipy.optimize import least_squares
 
 from ..embedding import embed_points
@@ -66,9 +66,12 @@ def patches(mesh, max_patches: int, seed: int = 0) -> np.ndarray:
     nt = int(mesh.num_tets)
     if nt <= max_patches:
         return np.arange(nt)
+    from sklearn.cluster import KMeans
+
     V = np.asarray(mesh.vertices, float)
     centroids = V[np.asarray(mesh.tets)].mean(axis=1)
-    _, labels = kmeans2(centroids, max_patches, seed=np.random.default_rng(seed), minit="++")
+    labels = KMeans(max_patches, n_init=4, random_state=seed).fit(
+        centroids, sample_weight=np.asarray(mesh.rest_volumes)).labels_
     return np.unique(labels, return_inverse=True)[1]
 
 
