@@ -95,3 +95,18 @@ def test_cli_field_start_applies_the_field_on_its_mesh_only(case, tmp_path):
     E_h = meta["base_material_homogeneous"]["youngs_modulus"]
     nu = meta["base_material_homogeneous"]["poisson_ratio"]
     assert np.allclose(mu_other, E_h / (2 * (1 + nu)), rtol=1e-12)
+
+
+def test_diagnose_suggests_the_field_start_when_the_stiffness_varies_in_space():
+    from matlearn.commands.diagnose import learning_hint
+
+    region = {"verdict": ["heterogeneity"], "effects": [{"name": "heterogeneity"}]}
+    assert "--start field" in learning_hint(region, "s.toml")
+    tied = {"verdict": ["stiffness_scale"],
+            "effects": [{"name": "stiffness_scale", "confounded_with": ["density", "heterogeneity"]},
+                        {"name": "heterogeneity"}]}
+    assert "--start field" in learning_hint(tied, "s.toml")
+    # a uniform change, or nothing found: no field to learn
+    assert learning_hint({"verdict": ["stiffness_scale"], "effects": [{"name": "stiffness_scale",
+                                                                      "confounded_with": ["density"]}]}, "s") is None
+    assert learning_hint({"verdict": [], "effects": [{"name": "heterogeneity"}]}, "s") is None

@@ -99,4 +99,19 @@ def _run(args):
         print(f"decay: x{dec['ratio']:.2f} the nominal damping law's at the recorded frequencies"
               + (f": damping {dec['change']} (alpha_M {dec['alpha_mass']:.4g} 1/s, alpha_K {dec['alpha_stiffness']:.4g} s)"
                  if dec["change"] else " (no change concluded)"))
+    hint = learning_hint(r, args.scene)
+    if hint:
+        print(hint)
     return 0
+
+
+def learning_hint(result: dict, scene) -> str | None:
+    """What to learn next when the verdict (or its lead's confounded alternatives) says the
+    stiffness varies in space: a correction of the principal stretches, the same in every element,
+    cannot learn that, a per-element modulus can (`learn --start field`, learning/field.py)."""
+    verdict = result.get("verdict") or []
+    lead = next((e for e in result.get("effects") or [] if verdict and e.get("name") == verdict[0]), {})
+    if "heterogeneity" in verdict or "heterogeneity" in (lead.get("confounded_with") or []):
+        return (f"the stiffness varies in space: `matlearn learn {scene} --start field` fits every element "
+                "its own Young's modulus before learning the correction")
+    return None
