@@ -13,6 +13,26 @@ from ..materials import Damping, Material
 from ..replay import interpolate_frames, score, simulate_recording
 
 
+FAILED_PCT = 100.0  # residual (% of size) per sample when a trial model cannot be simulated
+
+
+def marker_residual_pct(scene, model, recs, embs) -> np.ndarray:
+    """The train markers' residual (model - observed, seen samples, % of the object size) of
+    `model` replayed through recordings `recs` (embeddings `embs`); a recording the model cannot
+    simulate gives FAILED_PCT per sample (a trial point of a fit, rejected by its step control)."""
+    out = []
+    for rec, emb in zip(recs, embs):
+        seen = rec.seen
+        try:
+            sim = simulate_recording(scene, model, rec)
+            P = interpolate_frames(sim[0], emb.apply(sim[1]), rec.times)
+            r = ((P - rec.markers)[seen] / scene.object_size * 100.0).ravel()
+        except RuntimeError:
+            r = np.full(3 * int(seen.sum()), FAILED_PCT)
+        out.append(r if np.all(np.isfinite(r)) else np.full(3 * int(seen.sum()), FAILED_PCT))
+    return np.concatenate(out)
+
+
 def _unpack(p, base: Material, law: str, alpha_mass: float | None = None):
     E, nu, aK = np.exp(p[0]), p[1], np.exp(p[3])
     aM = np.exp(p[2]) if alpha_mass is None else alpha_mass
@@ -29,7 +49,6 @@ def fit_parameters(scene, law: str = "corotated", max_evaluations: int = 40, log
     if not recs:
         raise ValueError("baseline: the scene has no train recording with markers")
     embs = [embed_points(scene.mesh, r.marker_rest) for r in recs]
-    size = scene.object_size
     m0, d0 = scene.material, scene.damping
     nu0 = float(np.mean(m0.poisson_ratio))
     p0 = np.array([np.log(float(np.mean(m0.youngs_modulus))), min(nu0, 0.48),
@@ -45,7 +64,6 @@ def fit_parameters(scene, law: str = "corotated", max_evaluations: int = 40, log
     if alpha_mass is not None:  # exp(p[2]) is replaced by the fixed value in _unpack
         p0[2] = np.log(max(alpha_mass, 1e-300))
     count = [0]
-    big = 100.0  # % of size per sample when a simulation fails
 
     def full(q):
         p = p0.copy()
@@ -56,17 +74,7 @@ def fit_parameters(scene, law: str = "corotated", max_evaluations: int = 40, log
         count[0] += 1
         p = full(q)
         mat, damp = _unpack(p, m0, law, alpha_mass)
-        model = scene.model(material=mat, damping=damp)
-        out = []
-        for rec, emb in zip(recs, embs):
-            seen = rec.seen
-            try:
-                sim = simulate_recording(scene, model, rec)
-                P = interpolate_frames(sim[0], emb.apply(sim[1]), rec.times)
-                out.append(((P - rec.markers)[seen] / size * 100.0).ravel())
-            except RuntimeError:
-                out.append(np.full(3 * int(seen.sum()), big))
-        r = np.concatenate(out)
+        r = marker_residual_pct(scene, scene.model(material=mat, damping=damp), recs, embs)
         if log:
             log(f"  baseline eval {count[0]}: E={np.exp(p[0]):.4g} nu={p[1]:.3f} "
                 f"aM={np.exp(p[2]):.3g} aK={np.exp(p[3]):.3g} rms={np.sqrt(np.mean(r**2)):.3f}%")

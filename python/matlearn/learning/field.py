@@ -37,9 +37,8 @@ from scipy.optimize import least_squares
 
 from ..embedding import embed_points
 from ..materials import Material
-from ..replay import interpolate_frames, simulate_recording
+from .baseline import marker_residual_pct
 
-FAILED_PCT = 100.0  # residual (% of size) per sample when a trial field cannot be simulated
 MAX_LOG_STEP = 3.0  # bound on |q| (a factor e^3 = 20 either way from the baseline)
 
 
@@ -117,28 +116,21 @@ def fit_stiffness_field(scene, material: Material, damping, smooth: float = 0.3,
     k = int(labels.max()) + 1
     pairs = patch_pairs(mesh.tets, labels)
     embs = [embed_points(mesh, r.marker_rest) for r in recs]
-    size = scene.object_size
 
     def material_of(q):
         return Material(material.model, E0 * np.exp(q[labels]), material.poisson_ratio,
                         material.density, list(material.edits))
 
-    count = [0]
+    count, best = [0], [np.inf]
+    total = (k + 1) * (iterations + 1)  # about: one Jacobian (k simulations) per iteration
 
     def data_residual(q):
         count[0] += 1
-        model = scene.model(material=material_of(q), damping=damping)
-        out = []
-        for rec, emb in zip(recs, embs):
-            seen = rec.seen
-            try:
-                sim = simulate_recording(scene, model, rec)
-                P = interpolate_frames(sim[0], emb.apply(sim[1]), rec.times)
-                r = ((P - rec.markers)[seen] / size * 100.0).ravel()
-                out.append(r if np.all(np.isfinite(r)) else np.full(3 * int(seen.sum()), FAILED_PCT))
-            except RuntimeError:
-                out.append(np.full(3 * int(seen.sum()), FAILED_PCT))
-        return np.concatenate(out)
+        r = marker_residual_pct(scene, scene.model(material=material_of(q), damping=damping), recs, embs)
+        best[0] = min(best[0], float(np.sqrt(np.mean(r**2))))
+        if log and count[0] % (k + 1) == 0:
+            log(f"stiffness field: {count[0]} of ~{total} simulations, best train rms {best[0]:.4g} % of the size")
+        return r
 
     r0 = data_residual(np.zeros(k))
     n = len(r0)
