@@ -143,8 +143,7 @@ def fit_stiffness_field(scene, material: Material, damping, smooth: float = 0.3,
     sol = least_squares(residual, np.zeros(k), bounds=(-MAX_LOG_STEP, MAX_LOG_STEP), method="trf",
                         diff_step=1e-3, max_nfev=iterations)
     q = sol.x
-    r1 = data_residual(q)
-    rms1 = float(np.sqrt(np.mean(r1**2)))
+    rms1 = float(np.sqrt(np.mean(sol.fun[:n] ** 2)))  # the data rows of the residual at sol.x
     if not rms1 < rms0:  # nothing gained (or a worse field): the homogeneous baseline stays
         q = np.zeros(k)
         rms1 = rms0

@@ -54,7 +54,8 @@ from .baseline import fit_parameters
 START_JSON = "start.json"
 BEST_JSON = "best_start.json"
 STARTS = ("nominal", "baseline")  # the starts "best" compares
-MODES = STARTS + ("field", "best")
+SINGLE = STARTS + ("field",)  # every start one loop runs from
+MODES = SINGLE + ("best",)
 
 
 def spec_dict(spec) -> dict:
@@ -93,6 +94,24 @@ def _warm_for(warm, law: str):
     return warm.get(law)
 
 
+def _cached_start(run_dir, start: str) -> dict | None:
+    """The start info RUN/start.json holds for `start` (None: no run folder, no file, or another
+    start's)."""
+    cache = Path(run_dir) / START_JSON if run_dir is not None else None
+    if cache is None or not cache.exists():
+        return None
+    doc = json.loads(cache.read_text())
+    return doc if doc.get("start") == start else None
+
+
+def _cache_start(run_dir, info: dict) -> None:
+    """Write the start info to RUN/start.json (a resumed run reads it instead of fitting again)."""
+    if run_dir is not None:
+        cache = Path(run_dir) / START_JSON
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        cache.write_text(json.dumps(info, indent=1))
+
+
 def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluations: int = 20, log=None,
                    laws: tuple | None = None):
     """(scene with fitted E, nu, alpha_K as nominal, start info dict) (module docstring).
@@ -103,15 +122,11 @@ def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluation
     scene's own law, co-rotated if it is neither co-rotated nor neo-Hookean); with several, the
     fit with the lowest train rms is the start, so the learner starts from the law that explains
     the recordings best (its correction is then learned on top of that law)."""
-    cache = Path(run_dir) / START_JSON if run_dir is not None else None
-    fit = None
-    if cache is not None and cache.exists():
-        doc = json.loads(cache.read_text())
-        if doc.get("start") == "baseline":
-            fit = {"material": material_from_dict(doc["material"]),
-                   "damping": damping_from_dict(doc["damping"]),
-                   "evaluations": doc.get("evaluations"), "train_rms_pct": doc.get("train_rms_pct")}
-    if fit is None:
+    doc = _cached_start(run_dir, "baseline")
+    if doc is not None:
+        fit = {"material": material_from_dict(doc["material"]), "damping": damping_from_dict(doc["damping"]),
+               "evaluations": doc.get("evaluations"), "train_rms_pct": doc.get("train_rms_pct")}
+    else:
         own = scene.material.model if scene.material.model in ("corotated", "neo_hookean") else "corotated"
         fits = {law: fit_parameters(scene, law, max_evaluations=max_evaluations,
                                     alpha_mass=float(scene.damping.alpha_mass), start=_warm_for(warm, law))
@@ -124,9 +139,7 @@ def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluation
     info = {"start": "baseline", "material": spec_dict(fit["material"]),
             "damping": spec_dict(fit["damping"]), "evaluations": fit.get("evaluations"),
             "train_rms_pct": fit.get("train_rms_pct"), "train_rms_pct_by_law": fit.get("train_rms_pct_by_law")}
-    if cache is not None:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        cache.write_text(json.dumps(info, indent=1))
+    _cache_start(run_dir, info)
     if log:
         log(f"learning starts from the baseline fit: {fit['material'].model} E={np.mean(fit['material'].youngs_modulus):.4g} Pa "
             f"nu={np.mean(fit['material'].poisson_ratio):.3f} alpha_M={fit['damping'].alpha_mass:.3g} "
@@ -144,12 +157,7 @@ def field_start(scene, run_dir=None, warm: dict | None = None, max_evaluations: 
     (`material_homogeneous`), what the learned model uses on another mesh (io.scene_model)."""
     from .field import fit_stiffness_field, homogeneous, mesh_fingerprint
 
-    cache = Path(run_dir) / START_JSON if run_dir is not None else None
-    info = None
-    if cache is not None and cache.exists():
-        doc = json.loads(cache.read_text())
-        if doc.get("start") == "field":
-            info = doc
+    info = _cached_start(run_dir, "field")
     if info is None:
         bscene, binfo = baseline_start(scene, None, warm=warm, max_evaluations=max_evaluations, log=log,
                                        laws=laws)
@@ -159,9 +167,7 @@ def field_start(scene, run_dir=None, warm: dict | None = None, max_evaluations: 
                 "material_homogeneous": spec_dict(homogeneous(mat, scene.mesh.rest_volumes)),
                 "material_mesh": mesh_fingerprint(scene.mesh),
                 "baseline_material": binfo["material"], "field": finfo}
-        if cache is not None:
-            cache.parent.mkdir(parents=True, exist_ok=True)
-            cache.write_text(json.dumps(info, indent=1))
+        _cache_start(run_dir, info)
     return with_parameters(scene, material_from_dict(info["material"]), damping_from_dict(info["damping"])), info
 
 
@@ -169,8 +175,8 @@ def start_scene(scene, start: str, run_dir=None, warm: dict | None = None, max_e
                 log=None, laws: tuple | None = None):
     """The scene the loop learns on for `start` ("nominal", "baseline" or "field"; laws: those
     the baseline start fits, :func:`baseline_start`, :func:`field_start`) and the start info."""
-    if start not in STARTS + ("field",):
-        raise ValueError(f"start must be one of {STARTS + ('field',)}, got {start!r}")
+    if start not in SINGLE:
+        raise ValueError(f"start must be one of {SINGLE}, got {start!r}")
     if start == "nominal":
         return scene, {"start": "nominal"}
     if start == "field":
