@@ -53,6 +53,7 @@ from .baseline import fit_parameters
 
 START_JSON = "start.json"
 BEST_JSON = "best_start.json"
+FIELD_CHECKPOINT = "field_checkpoint.json"  # the field fit after each of its iterations (resume)
 STARTS = ("nominal", "baseline")  # the starts "best" compares
 SINGLE = STARTS + ("field",)  # every start one loop runs from
 MODES = SINGLE + ("best",)
@@ -148,21 +149,25 @@ def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluation
 
 
 def field_start(scene, run_dir=None, warm: dict | None = None, max_evaluations: int = 20, log=None,
-                laws: tuple | None = None, smooth: float = 0.3, iterations: int = 8,
+                laws: tuple | None = None, smooth: float = 0.3, iterations: int = 20,
                 max_patches: int = 128):
     """(scene with the baseline fit and a per-element stiffness field as nominal, start info):
     :func:`baseline_start` (not cached on its own), then learning.field.fit_stiffness_field on
     top of it (smooth, iterations, max_patches: its arguments). Cached in RUN/start.json like
     the baseline start; the info also holds the field's volume-weighted log-mean material
-    (`material_homogeneous`), what the learned model uses on another mesh (io.scene_model)."""
+    (`material_homogeneous`), what the learned model uses on another mesh (io.scene_model).
+    The field fit writes RUN/field_checkpoint.json after each of its iterations; a killed run
+    resumes the fit from there (the same path as an uninterrupted one)."""
     from .field import fit_stiffness_field, homogeneous, mesh_fingerprint
 
     info = _cached_start(run_dir, "field")
     if info is None:
         bscene, binfo = baseline_start(scene, None, warm=warm, max_evaluations=max_evaluations, log=log,
                                        laws=laws)
+        ckpt = Path(run_dir) / FIELD_CHECKPOINT if run_dir is not None else None
         mat, finfo = fit_stiffness_field(bscene, bscene.material, bscene.damping, smooth=smooth,
-                                         iterations=iterations, max_patches=max_patches, log=log)
+                                         iterations=iterations, max_patches=max_patches, log=log,
+                                         checkpoint=ckpt)
         info = {**binfo, "start": "field", "material": spec_dict(mat),
                 "material_homogeneous": spec_dict(homogeneous(mat, scene.mesh.rest_volumes)),
                 "material_mesh": mesh_fingerprint(scene.mesh),
