@@ -52,6 +52,10 @@ from ..materials import Material
 from .baseline import marker_residual_pct
 
 MAX_LOG_STEP = 3.0  # bound on |q| (a factor e^3 = 20 either way from the baseline)
+# at most this many patches per observed marker coordinate (3 x the markers of the train
+# recording with the most): a field finer than the markers resolve is fitted by the smoothing
+# alone (0: no such limit, max_patches only)
+PATCHES_PER_COORDINATE = 1
 
 
 def face_pairs(tets: np.ndarray) -> np.ndarray:
@@ -195,7 +199,9 @@ def fit_stiffness_field(scene, material: Material, damping, smooth: float = 0.3,
     mesh = scene.mesh
     nt = int(mesh.num_tets)
     E0 = np.broadcast_to(np.asarray(material.youngs_modulus, float), (nt,)).copy()
-    labels = patches(mesh, max_patches, seed)
+    coords = 3 * max(r.num_markers for r in recs)
+    limit = max_patches if not PATCHES_PER_COORDINATE else max(1, min(max_patches, int(PATCHES_PER_COORDINATE * coords)))
+    labels = patches(mesh, limit, seed)
     k = int(labels.max()) + 1
     pairs = patch_pairs(mesh.tets, labels)
     embs = [embed_points(mesh, r.marker_rest) for r in recs]
@@ -219,7 +225,7 @@ def fit_stiffness_field(scene, material: Material, damping, smooth: float = 0.3,
     n = len(r0)
     rms0 = float(np.sqrt(np.mean(r0**2)))
     w = np.sqrt(smooth * n / max(len(pairs), 1)) * rms0
-    info = {"patches": k, "adjacent_pairs": int(len(pairs)), "smooth": float(smooth),
+    info = {"patches": k, "patch_limit": int(limit), "marker_coordinates": int(coords), "adjacent_pairs": int(len(pairs)), "smooth": float(smooth),
             "iterations": int(iterations), "jacobian": jacobian}
     if jacobian == "fd":
         def residual(q):
@@ -230,7 +236,7 @@ def fit_stiffness_field(scene, material: Material, damping, smooth: float = 0.3,
         q = sol.x
         rms1 = float(np.sqrt(np.mean(sol.fun[:n] ** 2)))  # the data rows of the residual at sol.x
     else:
-        fingerprint = mesh_fingerprint(mesh) + f"|{E0.sum():.17g}|{smooth}|{max_patches}|{seed}"
+        fingerprint = mesh_fingerprint(mesh) + f"|{E0.sum():.17g}|{smooth}|{limit}|{seed}"
         q, rms1, lm = _tangent_fit(scene, material_of, damping, labels, pairs, w, data_residual, r0,
                                    iterations, fingerprint, checkpoint, log)
         info.update(lm)
