@@ -87,13 +87,21 @@ def test_cli_baseline_start_saves_the_fitted_parameters_and_simulate_reproduces_
     assert abs(wrong - learned) > 0.1 * learned
 
 
+def _start_name(scene):
+    """Which start a scene is: 'field' (a per-element modulus), 'nominal' (E = 3.5e5) or 'baseline'."""
+    E = np.asarray(scene.material.youngs_modulus, float)
+    if E.ndim and np.ptp(E) > 0:
+        return "field"
+    return "nominal" if np.mean(E) == pytest.approx(3.5e5) else "baseline"
+
+
 def _fake_learn(train, test):
-    """A learn() stand-in: per start ('nominal' or 'baseline', told apart by the scene's E) a
-    fixed learned train and test max error."""
+    """A learn() stand-in: per start (told apart by the scene's E, _start_name) a fixed learned
+    train and test max error."""
     calls = []
 
     def learn_fn(scene, run_dir, options, resume=False, log=None):
-        name = "nominal" if np.mean(scene.material.youngs_modulus) == pytest.approx(3.5e5) else "baseline"
+        name = _start_name(scene)
         calls.append((name, str(run_dir)))
         fin = {"train": {"max_error_pct": train[name]},
                "test": {"max_error_pct": max(test[name]), "per_recording_max_pct": test[name]}}
@@ -101,29 +109,43 @@ def _fake_learn(train, test):
     return learn_fn, calls
 
 
-@pytest.mark.parametrize("train,chosen", [({"nominal": 0.13, "baseline": 0.20}, "nominal"),
-                                          ({"nominal": 0.20, "baseline": 0.13}, "baseline"),
-                                          ({"nominal": 0.20, "baseline": 0.20}, "baseline")])
+@pytest.mark.parametrize("train,chosen", [({"nominal": 0.13, "baseline": 0.20, "field": 0.15}, "nominal"),
+                                          ({"nominal": 0.20, "baseline": 0.13, "field": 0.15}, "baseline"),
+                                          ({"nominal": 0.20, "baseline": 0.15, "field": 0.13}, "field"),
+                                          ({"nominal": 0.20, "baseline": 0.20, "field": 0.20}, "baseline"),
+                                          ({"nominal": 0.13, "baseline": 0.20, "field": 0.13}, "nominal")])
 def test_best_start_keeps_the_lower_train_error_and_never_looks_at_the_test(case, tmp_path, monkeypatch,
                                                                              train, chosen):
+    from matlearn.learning import field as field_mod
+
     sc = load_scene(case)
     fitted = {"material": sc.material.__class__("corotated", 2e5, 0.43, 1000.0),
               "damping": sc.damping.__class__(0.0, 0.004), "evaluations": 1}
-    monkeypatch.setattr(start_mod, "fit_parameters", lambda *a, **k: fitted)
-    # the test errors always favour the start the train errors reject (ties: the nominal)
-    other = {"nominal": "baseline", "baseline": "nominal"}[chosen]
-    test = {chosen: [0.9, 0.9], other: [0.1, 0.1]}
+    fits = []
+    monkeypatch.setattr(start_mod, "fit_parameters", lambda *a, **k: fits.append(1) or fitted)
+    nt = sc.mesh.num_tets
+    E_field = 2e5 * np.exp(0.1 * np.sin(np.arange(nt)))
+
+    def fake_field(scene, material, damping, **kw):
+        assert float(np.mean(material.youngs_modulus)) == pytest.approx(2e5)  # on the baseline fit
+        return material.__class__(material.model, E_field, material.poisson_ratio, material.density), {}
+    monkeypatch.setattr(field_mod, "fit_stiffness_field", fake_field)
+    # the test errors always favour the starts the train errors reject (ties: the fewest parameters)
+    test = {n: ([0.9, 0.9] if n == chosen else [0.1, 0.1]) for n in train}
     learn_fn, calls = _fake_learn(train, test)
     scene, info, res, run = start_mod.learn_best_start(sc, tmp_path / "run", learn_fn=learn_fn)
-    assert sorted(c[0] for c in calls) == ["baseline", "nominal"]
-    assert {c[1] for c in calls} == {str(tmp_path / "run" / "start_nominal"), str(tmp_path / "run" / "start_baseline")}
+    assert sorted(c[0] for c in calls) == ["baseline", "field", "nominal"]
+    assert {c[1] for c in calls} == {str(tmp_path / "run" / f"start_{n}") for n in ("nominal", "baseline", "field")}
+    assert len(fits) == 1  # the field builds on the baseline start's fit, not a second one
     assert info["start"] == "best" and info["chosen"] == chosen
     assert res["final"]["train"]["max_error_pct"] == train[chosen]
     assert run == tmp_path / "run" / f"start_{chosen}" == start_mod.chosen_run(tmp_path / "run")
     # the kept scene and the saved base parameters are those of the kept start
-    E = float(np.mean(scene.material.youngs_modulus))
-    assert E == pytest.approx(2e5 if chosen == "baseline" else 3.5e5)
-    assert ("material" in info) == (chosen == "baseline")
+    E = np.asarray(scene.material.youngs_modulus, float)
+    want = {"baseline": 2e5, "nominal": 3.5e5, "field": E_field}[chosen]
+    np.testing.assert_allclose(np.broadcast_to(E, (nt,)), np.broadcast_to(want, (nt,)))
+    assert ("material" in info) == (chosen != "nominal")
+    assert ("material_homogeneous" in info) == (chosen == "field")
     assert info["test_per_recording_max_pct"][chosen] == [0.9, 0.9]  # recorded, not used
     assert start_mod.chosen_run(tmp_path / "elsewhere") == tmp_path / "elsewhere"
 
@@ -134,11 +156,11 @@ def test_cli_best_start_keeps_the_lower_train_run_and_its_model_replays(case, tm
     train = best["train_max_error_pct"]
     assert best["chosen"] == min(train, key=train.get)
     assert start_mod.chosen_run(out) == out / f"start_{best['chosen']}"
-    for name in ("nominal", "baseline"):  # each start ran in its own folder
+    for name in start_mod.STARTS:  # each start ran in its own folder
         metrics = json.loads((out / f"start_{name}" / "metrics.json").read_text())
         assert min(m["train"]["max_error_pct"] for m in metrics["iterations"]) == pytest.approx(train[name])
     meta = json.loads((out / "model.json").read_text())
-    assert meta["start"] == "best" and ("base_material" in meta) == (best["chosen"] == "baseline")
+    assert meta["start"] == "best" and ("base_material" in meta) == (best["chosen"] != "nominal")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["start"]["chosen"] == best["chosen"]
     sc = load_scene(case)

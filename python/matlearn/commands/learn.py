@@ -7,10 +7,11 @@ Recordings may be markers or point clouds (cloud_points/cloud_offsets/cloud_sigm
 recordings are tracked first with the physics-based tracker (progress shown, cached in
 RUN/tracked/ so --resume does not track again) and learned through their tracked markers.
 
-`--start best` learns from the nominal and from the fitted parameters (RUN/start_nominal,
-RUN/start_baseline, each with its own metrics.json and checkpoints) and keeps the model whose
-learned train error is lower (RUN/best_start.json). `--start field` learns from the fitted parameters
-with a per-element Young's modulus fitted on top (learning/field.py: heterogeneous objects)."""
+`--start field` learns from the fitted parameters with a per-element Young's modulus fitted on
+top (learning/field.py: heterogeneous objects). `--start best` learns from the nominal, the fitted
+parameters and the field (RUN/start_nominal, RUN/start_baseline, RUN/start_field, each with its
+own metrics.json and checkpoints) and keeps the model whose learned train error is lowest
+(RUN/best_start.json)."""
 from __future__ import annotations
 
 import json
@@ -106,10 +107,9 @@ def register(subparsers) -> None:
                         "train recordings first (alpha_M held: the Wang-2015 baseline less the term the "
                         "learner cannot undo; the learned model then never fits the train recordings "
                         "worse than that fit), or field: that fit plus a per-element Young's modulus "
-                        "fitted on top (a heterogeneous object: layers, inclusions; one simulation per "
-                        "element or patch and iteration), or best: learn from the first two "
-                        "(RUN/start_nominal, RUN/start_baseline) and keep the lower learned train error "
-                        "(twice the time)")
+                        "fitted on top (a heterogeneous object: layers, inclusions), or best: learn "
+                        "from all three (RUN/start_nominal, RUN/start_baseline, RUN/start_field) and "
+                        "keep the lowest learned train error (about three times the time)")
     p.add_argument("--no-distill", action="store_true", help="skip the MLP distillation")
     p.add_argument("--tangent-damping", action="store_true",
                    help="the stiffness-proportional Rayleigh damping acts on the corrected tangent "
