@@ -8,7 +8,7 @@ Writes bench/results/learning_table.json (keys of issue 3) and prints a table be
 paper's numbers. Each case's result is written as soon as it finishes.
 
 Usage: python bench/learning_table.py [--cases turtle,dragon,...] [--only NAME] [--iterations N]
-[--start best|baseline|nominal] [--out FILE] [--work DIR]
+[--start best|baseline|nominal|field] [--out FILE] [--work DIR]
 """
 from __future__ import annotations
 
@@ -72,7 +72,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
     if run_dir.exists():
         shutil.rmtree(run_dir)
     log = lambda *a: print("   ", *a, flush=True)  # noqa: E731
-    # best: both starts, the lower learned train error kept (learning/start.py)
+    # best: three starts (nominal, baseline, field), the lowest learned train error kept (learning/start.py)
     # the baseline start fits E, nu, alpha_K of both laws (warm-started from the baseline fits)
     # and starts from the one with the lower train rms
     lscene, sinfo, res, _ = learn_from(scene, start, run_dir, opts, warm=fits, laws=BASELINE_LAWS,
@@ -185,8 +185,9 @@ def main():
     ap.add_argument("--baseline-evals", type=int, default=20)
     ap.add_argument("--start", choices=MODES, default="best",
                     help="learning starts from the nominal parameters, from E, nu, alpha_K fitted "
-                         "(alpha_M held, warm-started from the baseline), or from both with the lower "
-                         "learned train error kept (best, default)")
+                         "(alpha_M held, warm-started from the baseline), or from that fit with a "
+                         "per-element modulus (field), or from all three with the lowest learned train "
+                         "error kept (best, default)")
     ap.add_argument("--start-evals", type=int, default=10,
                     help="max function evaluations of the start fit (warm-started from the baseline)")
     ap.add_argument("--start-pose", choices=STARTS, default="held",
@@ -238,9 +239,11 @@ def main():
         f"(learning/start.py; at most {args.start_evals} evaluations warm-started from the baseline; "
         "row `start_parameters`; iteration 0 is that fit, so `learned_train_max_error_pct` <= "
         "`start_train_max_error_pct`; wall_s includes this start fit, not the baseline's)" +
-        ("; the start whose learned model has the lower TRAIN max error is kept (row `start_chosen`, "
-         "`learned_train_max_error_pct_by_start`; `test_max_error_pct_by_start` is reported only, "
-         "never used for the choice; wall_s covers both runs)" if args.start == "best" else "")) + "; the RBF "
+        ("; with best, also from that fit with a per-element Young's modulus fitted on top (the "
+         "stiffness field, learning/field.py: 128 patches at most, tangent Jacobians), and the start "
+         "whose learned model has the lowest TRAIN max error is kept (ties: the fewest parameters; row "
+         "`start_chosen`, `learned_train_max_error_pct_by_start`; `test_max_error_pct_by_start` is "
+         "reported only, never used for the choice; wall_s covers all three runs)" if args.start == "best" else "")) + "; the RBF "
         "extends linearly beyond the centres' box (fit.py). Each row's `code_commit` (and "
         "`uncommitted_changes`) says which code produced it. Sphere cases: the truth's Rayleigh "
         "damping acts through the edited tangent (alpha_K K_truth), which the learnable damping "

@@ -33,7 +33,7 @@ from matlearn.cases import _release  # noqa: E402  (the learning table's tip-loa
 from matlearn.learning import LearnOptions, save_model, transfer_score  # noqa: E402
 from matlearn.learning.baseline import fit_parameters  # noqa: E402
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS, RbfParams  # noqa: E402
-from matlearn.learning.start import learn_from  # noqa: E402
+from matlearn.learning.start import learn_from, model_meta  # noqa: E402
 from matlearn.replay import score  # noqa: E402
 from matlearn.scene import load_scene  # noqa: E402
 from matlearn.synthetic import DEFAULT_GRAVITY, Motion, make_case  # noqa: E402
@@ -84,8 +84,7 @@ def run_case(name: str, work: Path, iterations: int, baseline_evals: int) -> dic
                                   log=log)
     params = res["params"] if res["params"] is not None else RbfParams(np.ones((1, 3)), np.zeros((1, 3)))
     model_dir = work / "models" / name
-    base = {"base_material": sinfo["material"], "base_damping": sinfo["damping"]} if "material" in sinfo else {}
-    save_model(model_dir, params, None, meta={"start": "best", **base})
+    save_model(model_dir, params, None, meta={"start": "best", **model_meta(sinfo)})
     learn_wall = time.time() - t0
     tname, mesh, clamp, motions, note = targets()[name]
     path = make_case(work / "targets", tname, mesh, kw["truth_material"], kw["truth_damping"], mesh,

@@ -42,7 +42,7 @@ def run(args) -> int:
                         extend=tuple(args.extend))
     t0 = time.time()
     log = (lambda *a: print(*a, file=sys.stderr, flush=True)) if not args.quiet else None
-    from ..learning.start import learn_from
+    from ..learning.start import learn_from, model_meta
 
     # best: both starts, the lower learned train error kept (RUN/start_<name>)
     scene, start, res, run_dir = learn_from(scene, args.start, out, opts, resume=args.resume, log=log)
@@ -69,12 +69,8 @@ def run(args) -> int:
                                   seed=args.seed)
         mlp, tinfo = train_mlp(X, Y, seed=args.seed)
         summary["distill"] = {**tinfo, **compare(params.correction(), mlp_correction(mlp), X, Y)}
-    base = {"base_material": start["material"], "base_damping": start["damping"]} if "material" in start else {}
-    if "material_homogeneous" in start:  # a stiffness field: what another mesh gets (io.scene_model)
-        base["base_material_homogeneous"] = start["material_homogeneous"]
-        base["base_material_mesh"] = start["material_mesh"]
     save_model(out, params, mlp, meta={"scene": summary["scene"], "best_iteration": res["best_iteration"],
-                                       "start": args.start, **base})
+                                       "start": args.start, **model_meta(start)})
     plot_convergence(res["metrics"], out / "convergence.png")
     import numpy as np
 

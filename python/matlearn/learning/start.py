@@ -189,6 +189,19 @@ def field_start(scene, run_dir=None, warm: dict | None = None, max_evaluations: 
     return with_parameters(scene, material_from_dict(info["material"]), damping_from_dict(info["damping"])), info
 
 
+def model_meta(info: dict) -> dict:
+    """The start's part of a learned model's model.json (io.save_model meta): the fitted base
+    material and damping when the start fitted them, and for a stiffness field its mesh's sha1 and
+    volume-weighted log-mean material, what another mesh gets (io.scene_model)."""
+    if "material" not in info:
+        return {}
+    meta = {"base_material": info["material"], "base_damping": info["damping"]}
+    if "material_homogeneous" in info:
+        meta["base_material_homogeneous"] = info["material_homogeneous"]
+        meta["base_material_mesh"] = info["material_mesh"]
+    return meta
+
+
 def start_scene(scene, start: str, run_dir=None, warm: dict | None = None, max_evaluations: int = 20,
                 log=None, laws: tuple | None = None):
     """The scene the loop learns on for `start` ("nominal", "baseline" or "field"; laws: those
