@@ -83,7 +83,9 @@ def run_case(name: str, work: Path, iterations: int, baseline_evals: int) -> dic
     _, sinfo, res, _ = learn_from(src, "best", work / "runs" / name, opts, warm=fits, laws=BASELINE_LAWS,
                                   log=log)
     params = res["params"] if res["params"] is not None else RbfParams(np.ones((1, 3)), np.zeros((1, 3)))
-    model_dir = work / "models" / name
+    # the run folder itself: a kept stiffness field names the run's homogeneous-start model
+    # (RUN/start_<name>, model_meta's transfer_model), which another mesh gets (io.scene_model)
+    model_dir = work / "runs" / name
     save_model(model_dir, params, None, meta={"start": "best", **model_meta(sinfo)})
     learn_wall = time.time() - t0
     tname, mesh, clamp, motions, note = targets()[name]

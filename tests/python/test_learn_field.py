@@ -181,6 +181,35 @@ def test_cli_field_start_applies_the_field_on_its_mesh_only(case, tmp_path):
     assert np.allclose(mu_other, E_h / (2 * (1 + nu)), rtol=1e-12)
 
 
+def test_a_best_run_that_kept_a_field_gives_other_meshes_its_homogeneous_model(case, tmp_path):
+    """io.scene_model: on the field's own mesh the field model; on another mesh the model named by
+    `transfer_model` (the best homogeneous start's), not the field's log-mean."""
+    from matlearn.learning.io import save_model
+
+    sc = load_scene(case)
+    other = load_scene(_bar_case(tmp_path / "other", "bar3", cells=(6, 1, 1)))
+    nt = sc.mesh.num_tets
+    field_mat = Material("corotated", 4e5 * np.exp(0.5 * np.sin(np.arange(nt))), 0.4, 1000.0)
+    run = tmp_path / "run"
+    field_info = {"material": start_mod.spec_dict(field_mat), "damping": start_mod.spec_dict(sc.damping),
+                  "material_homogeneous": start_mod.spec_dict(field_mod.homogeneous(field_mat, sc.mesh.rest_volumes)),
+                  "material_mesh": field_mod.mesh_fingerprint(sc.mesh), "transfer_run": "start_baseline"}
+    base_info = {"material": start_mod.spec_dict(Material("corotated", 2.5e5, 0.4, 1000.0)),
+                 "damping": start_mod.spec_dict(sc.damping)}
+    save_model(run / "start_baseline", start_mod.zero_params(), meta=start_mod.model_meta(base_info))
+    save_model(run, start_mod.zero_params(), meta={"start": "best", **start_mod.model_meta(field_info)})
+    assert json.loads((run / "model.json").read_text())["transfer_model"] == "start_baseline"
+    mu_here = np.asarray(scene_model(sc, run).mu)
+    np.testing.assert_allclose(mu_here, field_mat.youngs_modulus / (2 * 1.4), rtol=1e-12)
+    mu_other = np.asarray(scene_model(other, run).mu)
+    np.testing.assert_allclose(mu_other, 2.5e5 / (2 * 1.4), rtol=1e-12)
+    # without a transfer model (a `--start field` run): the field's log-mean
+    save_model(run, start_mod.zero_params(), meta={"start": "field", **start_mod.model_meta(
+        {k: v for k, v in field_info.items() if k != "transfer_run"})})
+    E_h = field_info["material_homogeneous"]["youngs_modulus"]
+    np.testing.assert_allclose(np.asarray(scene_model(other, run).mu), E_h / (2 * 1.4), rtol=1e-12)
+
+
 def test_diagnose_suggests_the_field_start_when_the_stiffness_varies_in_space():
     from matlearn.commands.diagnose import learning_hint
 

@@ -147,6 +147,12 @@ def test_best_start_keeps_the_lower_train_error_and_never_looks_at_the_test(case
     assert ("material" in info) == (chosen != "nominal")
     assert ("material_homogeneous" in info) == (chosen == "field")
     assert info["test_per_recording_max_pct"][chosen] == [0.9, 0.9]  # recorded, not used
+    # every start's model is saved in its folder; a kept field names the best homogeneous start's
+    for n in start_mod.STARTS:
+        assert json.loads((tmp_path / "run" / f"start_{n}" / "model.json").read_text())["start"] == n
+    alt = min(("nominal", "baseline"), key=lambda n: (train[n], start_mod.PREFERENCE.index(n)))
+    assert info.get("transfer_start") == (alt if chosen == "field" else None)
+    assert start_mod.model_meta(info).get("transfer_model") == (f"start_{alt}" if chosen == "field" else None)
     assert start_mod.chosen_run(tmp_path / "elsewhere") == tmp_path / "elsewhere"
 
 

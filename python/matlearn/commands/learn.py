@@ -44,7 +44,7 @@ def run(args) -> int:
     log = (lambda *a: print(*a, file=sys.stderr, flush=True)) if not args.quiet else None
     from ..learning.start import learn_from, model_meta
 
-    # best: both starts, the lower learned train error kept (RUN/start_<name>)
+    # best: three starts, the lowest learned train error kept (RUN/start_<name>)
     scene, start, res, run_dir = learn_from(scene, args.start, out, opts, resume=args.resume, log=log)
     params = res["params"]
     summary = {"scene": str(Path(args.scene).resolve()), "best_iteration": res["best_iteration"],
@@ -53,11 +53,9 @@ def run(args) -> int:
     mlp = None
     if params is None:
         print("the nominal model fits best; writing a zero correction", file=sys.stderr)
-        import numpy as np
+        from ..learning.start import zero_params
 
-        from ..learning.fit import RbfParams
-
-        params = RbfParams(np.ones((1, 3)), np.zeros((1, 3)))
+        params = zero_params()
     elif not args.no_distill:
         from ..learning.distill import compare, simulation_samples, train_mlp
         from ..learning.io import mlp_correction

@@ -99,15 +99,22 @@ def scene_model(scene, run_dir, kind: str | None = None):
     """The learned model of run `run_dir` on `scene`: the scene's nominal material and damping
     (or the run's `base_material` / `base_damping`, when it started from the baseline fit) plus
     the learned correction. A run started from a stiffness field (start "field") applies its
-    per-element modulus on the mesh it was fitted on only; another mesh gets the field's
-    volume-weighted log-mean (`base_material_homogeneous`)."""
+    per-element modulus on the mesh it was fitted on only; another mesh gets the model named by
+    `transfer_model` (a "best" run: the best homogeneous start's, learned without a field) or,
+    without one, the field's volume-weighted log-mean (`base_material_homogeneous`)."""
     from .field import mesh_fingerprint
     from .start import damping_from_dict, material_from_dict
 
     correction = load_model(run_dir, kind)  # checks the folder and its files
     info = json.loads((Path(run_dir) / MODEL_JSON).read_text())
     mat = material_from_dict(info["base_material"]) if info.get("base_material") else None
-    if info.get("base_material_mesh") and info["base_material_mesh"] != mesh_fingerprint(scene.mesh):
+    foreign = bool(info.get("base_material_mesh")) and info["base_material_mesh"] != mesh_fingerprint(scene.mesh)
+    if foreign and info.get("transfer_model"):
+        # a "best" run that kept a field: another mesh gets the best homogeneous start's model
+        sub = Path(run_dir) / info["transfer_model"]
+        sub_info = json.loads((sub / MODEL_JSON).read_text()) if (sub / MODEL_JSON).exists() else {}
+        return scene_model(scene, sub, kind if sub_info.get("has_mlp") else None)
+    if foreign:
         # a per-element stiffness field (start "field") belongs to the mesh it was fitted on:
         # another mesh gets the field's volume-weighted log-mean modulus
         mat = material_from_dict(info["base_material_homogeneous"])

@@ -199,7 +199,16 @@ def model_meta(info: dict) -> dict:
     if "material_homogeneous" in info:
         meta["base_material_homogeneous"] = info["material_homogeneous"]
         meta["base_material_mesh"] = info["material_mesh"]
+    if info.get("transfer_run"):  # "best" kept a field: the material model for other meshes
+        meta["transfer_model"] = info["transfer_run"]
     return meta
+
+
+def zero_params():
+    """The RbfParams of no correction (a loop that accepted no update)."""
+    from .fit import RbfParams
+
+    return RbfParams(np.ones((1, 3)), np.zeros((1, 3)))
 
 
 def start_scene(scene, start: str, run_dir=None, warm: dict | None = None, max_evaluations: int = 20,
@@ -248,8 +257,20 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
     test = {n: (r[2]["final"]["test"] or {}).get("per_recording_max_pct") for n, r in runs.items()}
     out = {**info, "start": "best", "chosen": chosen, "train_max_error_pct": train,
            "test_per_recording_max_pct": test}
+    # every start's learned model is saved in its own folder (loadable with io.scene_model); a
+    # field belongs to its mesh, so a kept field names the best *homogeneous* start's model as
+    # the one another mesh gets (io.scene_model: the learned material, not the object's field)
+    from .io import save_model
+
+    for name, (_, i, r, d) in runs.items():
+        save_model(d, r["params"] if r["params"] is not None else zero_params(), None,
+                   meta={"start": name, **model_meta(i)})
+    transfer = None
+    if chosen == "field":
+        transfer = min((n for n in STARTS if n != "field"), key=lambda n: (train[n], PREFERENCE.index(n)))
+        out["transfer_start"], out["transfer_run"] = transfer, runs[transfer][3].name
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / BEST_JSON).write_text(json.dumps({"chosen": chosen, "run": sub.name,
+    (run_dir / BEST_JSON).write_text(json.dumps({"chosen": chosen, "run": sub.name, "transfer": transfer,
                                                  "train_max_error_pct": train}, indent=1))
     if log:
         log(f"best start: {chosen} (learned train max {train[chosen]:.4g} % vs "
