@@ -288,6 +288,8 @@ def _tangent_fit(scene, material_of, damping, labels, pairs, w, data_residual, r
 
     cur, fd_passes, done = cost(q, r), 0, it0
     for it in range(it0, iterations if not converged else it0):
+        if log:
+            log(f"stiffness field: iteration {it + 1} of {iterations}: tangents of {k} patches ...")
         J = jac(material_of(q), n)
         if J is None:  # layouts differ: finite differences of the simulated residual
             J = np.stack([(data_residual(q + 1e-3 * e) - r) / 1e-3 for e in np.eye(k)], axis=1)
