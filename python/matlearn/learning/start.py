@@ -41,10 +41,10 @@ with the true force difference at the same trajectory, and every fitted update r
 error from 0.25 % to 0.79-0.94 % (a fit of the true force difference reaches 0.15 % in one
 step), so the loop creeps on by shortened steps and ends at 0.19 % train; from the nominal start
 the 20 % modulus error dominates the control forces and the loop reaches 0.13 % train
-(bench/results/learning_table_nominal_start.json). bench/results/learning_table.json keeps the
-nominal start on the turtle, the StVK bar and both spheres, and the fitted start on the damping
-bars and the layered bar (before the field was a candidate). RUN/best_start.json records every
-start's train error and the choice.
+(bench/results/learning_table_nominal_start.json). bench/results/learning_table.json (5d6bdaa)
+keeps the nominal start on the tension sphere and both damping bars, the fitted start on the
+compression sphere, and the field on the turtle, the StVK bar and both layered bars.
+RUN/best_start.json records every start's train error and the choice.
 """
 from __future__ import annotations
 
@@ -229,9 +229,11 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
     """Learn from every start of STARTS and keep the one with the lowest learned *train* max error
     (module docstring; ties: PREFERENCE). Each start runs in RUN/start_<name> (resumable on its own). Returns (the scene
     learned on, start info, learn result, run folder of the kept start); the info has
-    start="best", chosen, train_max_error_pct per start, and the kept start's fitted material
-    and damping when it is the baseline, and each start's test errors for the record
-    (test_per_recording_max_pct; not used)."""
+    start="best", chosen, train_max_error_pct per start, the kept start's fitted material and
+    damping when it is the baseline or the field, transfer_start / transfer_run (the best start
+    without a field, whose model other meshes get) when it is the field, and each start's test
+    errors for the record (test_per_recording_max_pct; not used). Every start's learned model
+    is saved in its folder (io.save_model, no MLP)."""
     if learn_fn is None:
         from .loop import learn as learn_fn
     run_dir = Path(run_dir)
