@@ -103,6 +103,12 @@ def _recording_tangent(problem, model, rec, directions):
     return P, dP
 
 
+def patch_directions(labels) -> np.ndarray:
+    """(#T, k) log-stiffness directions of patches: column p is 1 on the tets labelled p."""
+    labels = np.asarray(labels, np.int64)
+    return (labels[:, None] == np.arange(int(labels.max()) + 1)[None]).astype(float)
+
+
 def stiffness_jacobian(problem, ctx, params: dict, directions, recs=None, fd_step: float = 0.1):
     """(r, J): the stacked train residual of the model `params` (fitting.marker_residual) and its
     Jacobian (N, k) for the log-stiffness directions (#T, k) (e.g. indicator columns of

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linearised import scaled_context, stiffness_jacobian
+from .linearised import patch_directions, scaled_context, stiffness_jacobian
 
 
 def _debiased_jacobian(problem, r, J):
@@ -61,8 +61,8 @@ def patch_map(problem, ctx, labels, iterations: int = 5, pull: float = 0.02, max
     from .effects import build_model
     from .fitting import marker_residual
 
-    k = int(labels.max()) + 1
-    D = (labels[:, None] == np.arange(k)[None]).astype(float)
+    D = patch_directions(labels)
+    k = D.shape[1]
     th = np.zeros(k)
     r, J = stiffness_jacobian(problem, scaled_context(ctx, D @ th), {}, D)
     J = _debiased_jacobian(problem, r, J)

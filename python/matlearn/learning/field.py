@@ -52,12 +52,6 @@ from ..materials import Material
 from .baseline import marker_residual_pct
 
 MAX_LOG_STEP = 3.0  # bound on |q| (a factor e^3 = 20 either way from the baseline)
-# at most this many patches per observed marker coordinate (3 x the markers of the train
-# recording with the most); 0 (the default): no such limit, max_patches only. Tried at 1 (session
-# 29): the StVK bar's 4 markers then get 12 patches instead of 128, and the loop learned from that
-# field scored 0.37 / 0.39 % held-out instead of 0.23 / 0.25 % (the smoothing, not the patch
-# count, is what keeps a field the markers do not resolve in check)
-PATCHES_PER_COORDINATE = 0
 
 
 def face_pairs(tets: np.ndarray) -> np.ndarray:
@@ -116,12 +110,6 @@ def homogeneous(material: Material, volumes) -> Material:
                     float(np.mean(material.density)), list(material.edits))
 
 
-def directions_of(labels: np.ndarray) -> np.ndarray:
-    """(#T, k) indicator columns of the patches: the log-stiffness direction of each patch."""
-    labels = np.asarray(labels, np.int64)
-    return (labels[:, None] == np.arange(int(labels.max()) + 1)[None]).astype(float)
-
-
 class TangentJacobian:
     """d(train marker residual, % of the size)/d(patch log-stiffness) by forward-mode tangents of
     the linearised replay (diagnosis.linearised.stiffness_jacobian: one pass for all patches,
@@ -132,11 +120,12 @@ class TangentJacobian:
     inside stiffness_jacobian."""
 
     def __init__(self, scene, damping, labels):
+        from ..diagnosis.linearised import patch_directions
         from ..diagnosis.problem import Problem
 
         self.problem = Problem(scene)
         self.damping = damping
-        self.D = directions_of(labels)
+        self.D = patch_directions(labels)
         self.passes = 0
 
     def __call__(self, material: Material, rows: int) -> np.ndarray | None:
@@ -201,9 +190,7 @@ def fit_stiffness_field(scene, material: Material, damping, smooth: float = 0.3,
     mesh = scene.mesh
     nt = int(mesh.num_tets)
     E0 = np.broadcast_to(np.asarray(material.youngs_modulus, float), (nt,)).copy()
-    coords = 3 * max(r.num_markers for r in recs)
-    limit = max_patches if not PATCHES_PER_COORDINATE else max(1, min(max_patches, int(PATCHES_PER_COORDINATE * coords)))
-    labels = patches(mesh, limit, seed)
+    labels = patches(mesh, max_patches, seed)
     k = int(labels.max()) + 1
     pairs = patch_pairs(mesh.tets, labels)
     embs = [embed_points(mesh, r.marker_rest) for r in recs]
@@ -227,7 +214,7 @@ def fit_stiffness_field(scene, material: Material, damping, smooth: float = 0.3,
     n = len(r0)
     rms0 = float(np.sqrt(np.mean(r0**2)))
     w = np.sqrt(smooth * n / max(len(pairs), 1)) * rms0
-    info = {"patches": k, "patch_limit": int(limit), "marker_coordinates": int(coords), "adjacent_pairs": int(len(pairs)), "smooth": float(smooth),
+    info = {"patches": k, "adjacent_pairs": int(len(pairs)), "smooth": float(smooth),
             "iterations": int(iterations), "jacobian": jacobian}
     if jacobian == "fd":
         def residual(q):
@@ -238,7 +225,7 @@ def fit_stiffness_field(scene, material: Material, damping, smooth: float = 0.3,
         q = sol.x
         rms1 = float(np.sqrt(np.mean(sol.fun[:n] ** 2)))  # the data rows of the residual at sol.x
     else:
-        fingerprint = mesh_fingerprint(mesh) + f"|{E0.sum():.17g}|{smooth}|{limit}|{seed}"
+        fingerprint = mesh_fingerprint(mesh) + f"|{E0.sum():.17g}|{smooth}|{max_patches}|{seed}"
         q, rms1, lm = _tangent_fit(scene, material_of, damping, labels, pairs, w, data_residual, r0,
                                    iterations, fingerprint, checkpoint, log)
         info.update(lm)
