@@ -60,10 +60,9 @@ from .baseline import fit_parameters
 START_JSON = "start.json"
 BEST_JSON = "best_start.json"
 FIELD_CHECKPOINT = "field_checkpoint.json"  # the field fit after each of its iterations (resume)
-STARTS = ("nominal", "baseline", "field")  # the starts "best" compares (ties: PREFERENCE)
-SINGLE = STARTS  # every start one loop runs from
+STARTS = ("nominal", "baseline", "field")  # the starts one loop runs from; "best" compares them all
 PREFERENCE = ("baseline", "nominal", "field")  # on equal learned train errors: the fewest parameters
-MODES = SINGLE + ("best",)
+MODES = STARTS + ("best",)
 
 
 def spec_dict(spec) -> dict:
@@ -215,8 +214,8 @@ def start_scene(scene, start: str, run_dir=None, warm: dict | None = None, max_e
                 log=None, laws: tuple | None = None):
     """The scene the loop learns on for `start` ("nominal", "baseline" or "field"; laws: those
     the baseline start fits, :func:`baseline_start`, :func:`field_start`) and the start info."""
-    if start not in SINGLE:
-        raise ValueError(f"start must be one of {SINGLE}, got {start!r}")
+    if start not in STARTS:
+        raise ValueError(f"start must be one of {STARTS}, got {start!r}")
     if start == "nominal":
         return scene, {"start": "nominal"}
     if start == "field":
