@@ -33,33 +33,27 @@ from pathlib import Path
 
 import numpy as np
 
-from matlearn import meshes
 from matlearn.embedding import embed_points
 from matlearn.learning import field
 from matlearn.learning.baseline import marker_residual_pct
-from matlearn.materials import Damping, Material
+from matlearn.materials import Material
 from matlearn.scene import load_scene
-from matlearn.synthetic import Motion, make_case
+from learning_scale import build as scale_case
 from provenance import code_commit
 
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results" / "field_scale.json"
 
 
+def layered(mesh) -> Material:
+    """The truth: co-rotated, E = 2 MPa above the bar's mid-plane (z > 0), 0.5 MPa below."""
+    z = np.asarray(mesh.vertices)[np.asarray(mesh.tets)].mean(axis=1)[:, 2]
+    return Material("corotated", np.where(z > 0, 2e6, 5e5), 0.4, 1000.0)
+
+
 def build(work: Path, tets: int, duration: float, frame_rate: float, fraction: float) -> Path:
-    mesh = meshes.bar_with_tets(0.2, 0.04, 0.04, tets)
-    name = f"layers_{mesh.num_tets}_{duration:g}s"
-    if (work / name / "scene.toml").exists():
-        return work / name / "scene.toml"
-    V = np.asarray(mesh.vertices)
-    z = V[np.asarray(mesh.tets)].mean(axis=1)[:, 2]
-    E = np.where(z > 0, 2e6, 5e5)
-    tip = [[0.19, -1, -1], [1, 1, 1]]
-    return make_case(work, name, mesh, Material("corotated", E, 0.4, 1000.0), Damping(0.0, 0.005),
-                     mesh, Material("corotated", 1e6, 0.4, 1000.0), Damping(0.0, 0.005),
-                     [[-1, -1, -1], [1e-3, 1, 1]],
-                     [Motion("release", "train", duration, load={"box": tip, "force": [0.0, -1.0, 0.0]})],
-                     marker_fraction=fraction, frame_rate=frame_rate, seed=0, progress=True)
+    return scale_case(work, tets, duration, frame_rate, fraction, prefix="layers", truth=layered,
+                      nominal=Material("corotated", 1e6, 0.4, 1000.0))
 
 
 def timed(fn):

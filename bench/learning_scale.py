@@ -63,14 +63,20 @@ STAGES = {"_errors": "forward_sim", "initial_trajectory": "initial_traj", "pod_b
           "solve_fit": "fit"}
 
 
-def build(work: Path, tets: int, duration: float, frame_rate: float, fraction: float) -> Path:
+def build(work: Path, tets: int, duration: float, frame_rate: float, fraction: float, prefix: str = "bar",
+          truth=None, nominal: Material | None = None) -> Path:
+    """The case (built once into `work`): the bar released from a 1 N tip load, clamped at x = 0.
+    truth: a function mesh -> the true Material (default neo-Hookean E = 1 MPa); nominal: the
+    model's (default co-rotated E = 1.2 MPa); prefix names the case (bench/field_scale.py's
+    layered truth uses its own)."""
     mesh = meshes.bar_with_tets(0.2, 0.04, 0.04, tets)
-    name = f"bar_{mesh.num_tets}_{duration:g}s"
+    name = f"{prefix}_{mesh.num_tets}_{duration:g}s"
     if (work / name / "scene.toml").exists():
         return work / name / "scene.toml"
     tip = [[0.19, -1, -1], [1, 1, 1]]
-    return make_case(work, name, mesh, Material("neo_hookean", 1e6, 0.4, 1000.0), Damping(0.0, 0.005),
-                     mesh, Material("corotated", 1.2e6, 0.4, 1000.0), Damping(0.0, 0.005),
+    true_mat = truth(mesh) if truth is not None else Material("neo_hookean", 1e6, 0.4, 1000.0)
+    return make_case(work, name, mesh, true_mat, Damping(0.0, 0.005),
+                     mesh, nominal or Material("corotated", 1.2e6, 0.4, 1000.0), Damping(0.0, 0.005),
                      [[-1, -1, -1], [1e-3, 1, 1]],
                      [Motion("release", "train", duration, load={"box": tip, "force": [0.0, -1.0, 0.0]})],
                      marker_fraction=fraction, frame_rate=frame_rate, seed=0, progress=True)

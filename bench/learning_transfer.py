@@ -32,8 +32,8 @@ from matlearn import cases, meshes  # noqa: E402
 from matlearn.cases import _release  # noqa: E402  (the learning table's tip-load release)
 from matlearn.learning import LearnOptions, save_model, transfer_score  # noqa: E402
 from matlearn.learning.baseline import fit_parameters  # noqa: E402
-from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS, RbfParams  # noqa: E402
-from matlearn.learning.start import learn_from, model_meta  # noqa: E402
+from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS  # noqa: E402
+from matlearn.learning.start import learn_from, model_meta, zero_params  # noqa: E402
 from matlearn.replay import score  # noqa: E402
 from matlearn.scene import load_scene  # noqa: E402
 from matlearn.synthetic import DEFAULT_GRAVITY, Motion, make_case  # noqa: E402
@@ -82,7 +82,7 @@ def run_case(name: str, work: Path, iterations: int, baseline_evals: int) -> dic
     log = lambda *a: print("   ", *a, flush=True)  # noqa: E731
     _, sinfo, res, _ = learn_from(src, "best", work / "runs" / name, opts, warm=fits, laws=BASELINE_LAWS,
                                   log=log)
-    params = res["params"] if res["params"] is not None else RbfParams(np.ones((1, 3)), np.zeros((1, 3)))
+    params = res["params"] if res["params"] is not None else zero_params()
     # the run folder itself: a kept stiffness field names the run's homogeneous-start model
     # (RUN/start_<name>, model_meta's transfer_model), which another mesh gets (io.scene_model)
     model_dir = work / "runs" / name
