@@ -30,7 +30,7 @@ from matlearn.embedding import embed_points
 from matlearn.learning import LearnOptions
 from matlearn.learning.baseline import baseline_test_errors, fit_parameters
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS
-from matlearn.learning.start import MODES, learn_from
+from matlearn.learning.start import MODES, STANDARD_LAWS, learn_from
 from matlearn.materials import Material, make_model
 from matlearn.replay import SCORE_START, STARTS, score
 from matlearn.scene import load_scene
@@ -39,7 +39,7 @@ RESULTS = Path(__file__).parent / "results" / "learning_table.json"
 
 
 def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str, start_evals: int,
-             start_pose: str = "held", extra: dict | None = None) -> dict:
+             start_pose: str = "held", extra: dict | None = None, start_laws: tuple = STANDARD_LAWS) -> dict:
     path = cases.build(spec, work / "cases")
     scene = load_scene(path)
     test_recs = scene.recordings_with_role("test")
@@ -73,9 +73,9 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
         shutil.rmtree(run_dir)
     log = lambda *a: print("   ", *a, flush=True)  # noqa: E731
     # best: three starts (nominal, baseline, field), the lowest learned train error kept (learning/start.py)
-    # the baseline start fits E, nu, alpha_K of both laws (warm-started from the baseline fits)
-    # and starts from the one with the lower train rms
-    lscene, sinfo, res, _ = learn_from(scene, start, run_dir, opts, warm=fits, laws=BASELINE_LAWS,
+    # the baseline start fits E, nu, alpha_K of every standard law (co-rotated, neo-Hookean, StVK;
+    # the first two warm-started from the baseline fits) and starts from the lowest train rms
+    lscene, sinfo, res, _ = learn_from(scene, start, run_dir, opts, warm=fits, laws=start_laws,
                                        max_evaluations=start_evals, log=log)
     # wall_s: the start fit (3 parameters, start=baseline/best) and the learning loop(s)
     wall = time.time() - t0
@@ -101,7 +101,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
                                 "alpha_mass": fit["damping"].alpha_mass,
                                 "alpha_stiffness": fit["damping"].alpha_stiffness,
                                 "evaluations": fit["evaluations"], "wall_s": base_wall},
-        "start": start, "train_start_pose": start_pose, "learn_options_override": extra or {}, "score_start": SCORE_START, "start_parameters": {k: sinfo.get(k) for k in ("material", "damping", "evaluations", "train_rms_pct_by_law")},
+        "start": start, "start_laws": list(start_laws), "train_start_pose": start_pose, "learn_options_override": extra or {}, "score_start": SCORE_START, "start_parameters": {k: sinfo.get(k) for k in ("material", "damping", "evaluations", "train_rms_pct_by_law")},
         **({"start_chosen": sinfo["chosen"], "learned_train_max_error_pct_by_start": sinfo["train_max_error_pct"],
             "test_max_error_pct_by_start": sinfo["test_per_recording_max_pct"]} if start == "best" else {}),
         "start_train_max_error_pct": res["nominal"]["train"]["max_error_pct"],
@@ -195,6 +195,10 @@ def main():
                          "every model is scored on the test recordings with replay.SCORE_START")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=JSON",
                     help="a LearnOptions field overriding the default (experiments; rows record it)")
+    ap.add_argument("--start-laws", default=",".join(STANDARD_LAWS),
+                    help="comma-separated laws the start fits, the lowest train rms kept (default: "
+                         "co-rotated, neo-Hookean and St. Venant-Kirchhoff; the baseline column fits "
+                         "the first two only, as issue 3 defines it)")
     ap.add_argument("--work", default="/tmp/matlearn_learning_bench")
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--merge", nargs="+", default=None,
@@ -233,8 +237,8 @@ def main():
         f"error, monotone loop) with at most {args.iterations} iterations, started (--start "
         f"{args.start}) from " + ("the nominal parameters" if args.start == "nominal" else
         ("both the nominal parameters and " if args.start == "best" else "") +
-        f"E, nu, alpha_K of the co-rotated and of the neo-Hookean law fitted to the train recordings "
-        "with alpha_M held at the nominal value, the law with the lower train rms kept (the learner "
+        f"E, nu, alpha_K of each of the laws {args.start_laws} fitted to the train recordings "
+        "with alpha_M held at the nominal value, the law with the lowest train rms kept (the learner "
         "then corrects that law; row `start_parameters` with `train_rms_pct_by_law`) "
         f"(learning/start.py; at most {args.start_evals} evaluations warm-started from the baseline; "
         "row `start_parameters`; iteration 0 is that fit, so `learned_train_max_error_pct` <= "
@@ -271,7 +275,8 @@ def main():
     for name in names:
         print(f"== {name}", flush=True)
         row = run_case(byname[name](), work, args.iterations, args.baseline_evals, args.start,
-                       args.start_evals, args.start_pose, extra)
+                       args.start_evals, args.start_pose, extra,
+                       tuple(args.start_laws.split(",")))
         row.update({k: doc[k] for k in ("code_commit", "loop_commit", "uncommitted_changes")})
         doc["cases"] = [c for c in doc["cases"] if c["case"] != name] + [row]
         out.parent.mkdir(parents=True, exist_ok=True)

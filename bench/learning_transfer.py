@@ -1,7 +1,8 @@
 """Benchmark: transfer of a learned material to other shapes and meshes (issue 3, item 10).
 
 For a few rows of the learning table (bench/learning_table.py, same protocol: the baseline fitted
-for both laws, learning from the best start, 20 iterations at most) the learned model (its start
+for both laws, learning from the best start with every standard law fitted by its starts, 20
+iterations at most) the learned model (its start
 material and damping + its correction, saved as `matlearn learn` saves it) is rebuilt on a
 second object of the same hidden material: another shape, meshed independently, with held-out
 motions of its own. Scored there beside the nominal guess and the parameter-fitting baseline
@@ -33,7 +34,7 @@ from matlearn.cases import _release  # noqa: E402  (the learning table's tip-loa
 from matlearn.learning import LearnOptions, save_model, transfer_score  # noqa: E402
 from matlearn.learning.baseline import fit_parameters  # noqa: E402
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS  # noqa: E402
-from matlearn.learning.start import learn_from, model_meta, zero_params  # noqa: E402
+from matlearn.learning.start import STANDARD_LAWS, learn_from, model_meta, zero_params  # noqa: E402
 from matlearn.replay import score  # noqa: E402
 from matlearn.scene import load_scene  # noqa: E402
 from matlearn.synthetic import DEFAULT_GRAVITY, Motion, make_case  # noqa: E402
@@ -80,7 +81,7 @@ def run_case(name: str, work: Path, iterations: int, baseline_evals: int) -> dic
     law = min(fits, key=lambda k: fits[k]["train_rms_pct"])
     opts = LearnOptions(iterations=iterations, extrapolation=EXTRAPOLATION_WEIGHTS, **spec.learn)
     log = lambda *a: print("   ", *a, flush=True)  # noqa: E731
-    _, sinfo, res, _ = learn_from(src, "best", work / "runs" / name, opts, warm=fits, laws=BASELINE_LAWS,
+    _, sinfo, res, _ = learn_from(src, "best", work / "runs" / name, opts, warm=fits, laws=STANDARD_LAWS,
                                   log=log)
     params = res["params"] if res["params"] is not None else zero_params()
     # the run folder itself: a kept stiffness field names the run's homogeneous-start model

@@ -11,7 +11,8 @@ RUN/tracked/ so --resume does not track again) and learned through their tracked
 top (learning/field.py: heterogeneous objects). `--start best` learns from the nominal, the fitted
 parameters and the field (RUN/start_nominal, RUN/start_baseline, RUN/start_field, each with its
 own metrics.json and checkpoints) and keeps the model whose learned train error is lowest
-(RUN/best_start.json)."""
+(RUN/best_start.json). `--laws all` lets these starts fit every standard law (co-rotated,
+neo-Hookean, St. Venant-Kirchhoff) and start from the one the train recordings support best."""
 from __future__ import annotations
 
 import json
@@ -45,7 +46,8 @@ def run(args) -> int:
     from ..learning.start import learn_from, model_meta
 
     # best: three starts, the lowest learned train error kept (RUN/start_<name>)
-    scene, start, res, run_dir = learn_from(scene, args.start, out, opts, resume=args.resume, log=log)
+    scene, start, res, run_dir = learn_from(scene, args.start, out, opts, resume=args.resume, log=log,
+                                            laws=_laws(args.laws))
     params = res["params"]
     summary = {"scene": str(Path(args.scene).resolve()), "best_iteration": res["best_iteration"],
                "lambda": res["lambda"],
@@ -83,6 +85,20 @@ def run(args) -> int:
     return 0
 
 
+def _laws(text: str):
+    """--laws: "own" (None: the scene's law), "all" (start.STANDARD_LAWS) or a comma list."""
+    from ..learning.start import STANDARD_LAWS
+
+    if text == "own":
+        return None
+    laws = STANDARD_LAWS if text == "all" else tuple(w.strip() for w in text.split(",") if w.strip())
+    bad = [w for w in laws if w not in STANDARD_LAWS]
+    if bad or not laws:
+        raise ValueError(f"--laws: unknown law(s) {bad or text!r}; expected 'own', 'all' or a comma list "
+                         f"of {', '.join(STANDARD_LAWS)}")
+    return laws
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("learn", help="learn an elastic + damping correction from recordings",
                               description=__doc__)
@@ -104,6 +120,10 @@ def register(subparsers) -> None:
                         "fitted on top (a heterogeneous object: layers, inclusions), or best: learn "
                         "from all three (RUN/start_nominal, RUN/start_baseline, RUN/start_field) and "
                         "keep the lowest learned train error (about three times the time)")
+    p.add_argument("--laws", default="own",
+                   help="the laws whose E, nu, alpha_K the baseline, field and best starts fit, the one with "
+                        "the lowest train rms kept and corrected: own (the scene's law, default), all "
+                        "(co-rotated, neo-Hookean, St. Venant-Kirchhoff; bench/learning_table.py) or a comma list")
     p.add_argument("--no-distill", action="store_true", help="skip the MLP distillation")
     p.add_argument("--tangent-damping", action="store_true",
                    help="the stiffness-proportional Rayleigh damping acts on the corrected tangent "

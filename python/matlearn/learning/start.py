@@ -1,9 +1,12 @@
 """Where the learning starts: the scene's nominal model, or parameters fitted first.
 
 "baseline" start: E, nu and alpha_K of the nominal law (or, with `laws`, of each listed law,
-the lowest train rms kept: bench/learning_table.py passes the co-rotated and the neo-Hookean law,
-so a recording that a neo-Hookean law explains better starts the learner from that law and its
-correction is learned on top of it) are fitted to the train recordings
+the lowest train rms kept: bench/learning_table.py passes STANDARD_LAWS, the co-rotated, the
+neo-Hookean and the St. Venant-Kirchhoff law, so a recording that another standard law explains
+better starts the learner from that law and its correction is learned on top of it; the
+difference of two of these laws is itself a stress correction of the principal stretches, so
+this only moves the learner's starting point, and a law the recordings do not support is not
+chosen) are fitted to the train recordings
 (baseline.fit_parameters, the Wang-2015-style identification, with alpha_M held at the
 nominal value) and replace the nominal ones. A change of E and nu of the co-rotated law is
 exactly a linear correction in the principal stretches and a change of alpha_K is a constant
@@ -63,6 +66,8 @@ FIELD_CHECKPOINT = "field_checkpoint.json"  # the field fit after each of its it
 STARTS = ("nominal", "baseline", "field")  # the starts one loop runs from; "best" compares them all
 PREFERENCE = ("baseline", "nominal", "field")  # on equal learned train errors: the fewest parameters
 MODES = STARTS + ("best",)
+# the standard hyperelastic laws a start may fit (`laws`; matlearn learn --laws all)
+STANDARD_LAWS = ("corotated", "neo_hookean", "stvk")
 
 
 def spec_dict(spec) -> dict:
@@ -126,7 +131,7 @@ def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluation
     The fit (alpha_M held at the nominal value) is read from RUN/start.json when a previous run
     of this scene wrote it; warm: a baseline.fit_parameters result (or a dict law -> result) to
     start the fit from (e.g. the 4-parameter baseline); laws: the laws fitted (default: the
-    scene's own law, co-rotated if it is neither co-rotated nor neo-Hookean); with several, the
+    scene's own law, co-rotated if it is none of STANDARD_LAWS); with several, the
     fit with the lowest train rms is the start, so the learner starts from the law that explains
     the recordings best (its correction is then learned on top of that law)."""
     doc = _cached_start(run_dir, "baseline")
@@ -134,7 +139,7 @@ def baseline_start(scene, run_dir=None, warm: dict | None = None, max_evaluation
         fit = {"material": material_from_dict(doc["material"]), "damping": damping_from_dict(doc["damping"]),
                "evaluations": doc.get("evaluations"), "train_rms_pct": doc.get("train_rms_pct")}
     else:
-        own = scene.material.model if scene.material.model in ("corotated", "neo_hookean") else "corotated"
+        own = scene.material.model if scene.material.model in STANDARD_LAWS else "corotated"
         fits = {law: fit_parameters(scene, law, max_evaluations=max_evaluations,
                                     alpha_mass=float(scene.damping.alpha_mass), start=_warm_for(warm, law))
                 for law in (laws or (own,))}
