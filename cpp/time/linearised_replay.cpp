@@ -9,8 +9,9 @@ namespace matlearn::time {
 
 LinearisedReplay::LinearisedReplay(const fem::Model& mesh_model, const VecXi& fixed,
                                    double time_step, const Vec3& gravity, double tolerance,
-                                   int refresh_iterations, int max_iterations)
+                                   int refresh_iterations, int max_iterations, const VecXi& prescribed)
     : fixed_(fixed),
+      prescribed_(prescribed),
       nv_(mesh_model.mesh().num_vertices()),
       nt_(mesh_model.mesh().num_tets()),
       h_(time_step),
@@ -26,11 +27,18 @@ LinearisedReplay::LinearisedReplay(const fem::Model& mesh_model, const VecXi& fi
     throw InvalidInput("fixed vertex index out of range [0, " + std::to_string(nv_) + ")");
   const auto& X = mesh_model.mesh().vertices();
   size_ = (X.colwise().maxCoeff() - X.colwise().minCoeff()).norm();
+  if (prescribed_.size() && (prescribed_.minCoeff() < 0 || prescribed_.maxCoeff() >= nv_))
+    throw InvalidInput("prescribed vertex index out of range [0, " + std::to_string(nv_) + ")");
   dof_map_ = VecXi::Zero(3 * nv_);
   for (int i = 0; i < fixed_.size(); ++i) dof_map_.segment<3>(3 * fixed_[i]).setConstant(-1);
+  for (int i = 0; i < prescribed_.size(); ++i) {
+    if (dof_map_[3 * prescribed_[i]] < 0)
+      throw InvalidInput("prescribed vertex " + std::to_string(prescribed_[i]) + " is also fixed or listed twice");
+    dof_map_.segment<3>(3 * prescribed_[i]).setConstant(-1);
+  }
   for (int g = 0; g < 3 * nv_; ++g)
     if (dof_map_[g] >= 0) dof_map_[g] = n_free_++;
-  if (n_free_ == 0) throw InvalidInput("every vertex is fixed: nothing to simulate");
+  if (n_free_ == 0) throw InvalidInput("every vertex is fixed or prescribed: nothing to simulate");
   assembler_ = std::make_unique<fem::SparseAssembler>(mesh_model.mesh().tets(), dof_map_, n_free_, true);
   A_ = assembler_->pattern();
   solver_.analyze(A_);
@@ -84,11 +92,37 @@ VecX LinearisedReplay::solve(const VecX& b, int step) {
   return x;
 }
 
+void LinearisedReplay::check_targets(const MatX3* targets, int steps) const {
+  const long k = prescribed_.size();
+  if (k == 0) {
+    if (targets && targets->rows() > 0)
+      throw InvalidInput("targets given but the replay has no prescribed vertices");
+    return;
+  }
+  if (!targets || targets->rows() != static_cast<long>(steps) * k)
+    throw InvalidInput("targets must have shape (steps * #prescribed, 3) = (" +
+                       std::to_string(static_cast<long>(steps) * k) + ", 3) for the prescribed vertices");
+  if (!targets->allFinite()) throw InvalidInput("targets contain NaN or Inf");
+}
+
+void LinearisedReplay::start_velocity(const MatX3& xs, const MatX3* targets, int s, MatX3& v) const {
+  for (int i = 0; i < fixed_.size(); ++i) v.row(fixed_[i]).setZero();
+  const long k = prescribed_.size();
+  for (long i = 0; i < k; ++i)
+    v.row(prescribed_[i]) = (targets->row(s * k + i) - xs.row(prescribed_[i])) / h_;
+}
+
+void LinearisedReplay::place_prescribed(const MatX3* targets, int s, MatX3& xs) const {
+  const long k = prescribed_.size();
+  for (long i = 0; i < k; ++i) xs.row(prescribed_[i]) = targets->row(s * k + i);
+}
+
 MatX3 LinearisedReplay::simulate(const fem::Model& model, const MatX3& x0_in, const MatX3& v0_in,
-                                 int steps, const MatX3& f_ext, MatX3* velocities) {
+                                 int steps, const MatX3& f_ext, MatX3* velocities, const MatX3* targets) {
   if (model.mesh().num_vertices() != nv_ || model.mesh().num_tets() != nt_)
     throw InvalidInput("LinearisedReplay::simulate: the model's mesh differs from the replay's");
   if (steps < 0) throw InvalidInput("steps must be >= 0");
+  check_targets(targets, steps);
   if (f_ext.rows() != nv_) throw InvalidInput("f_ext must have shape (#V, 3)");
   model.check_state(x0_in, "x");
   model.check_state(v0_in, "v");
@@ -104,7 +138,7 @@ MatX3 LinearisedReplay::simulate(const fem::Model& model, const MatX3& x0_in, co
   fem::ElementState st;
   for (int s = 0; s < steps; ++s) {
     MatX3 v = vs;
-    for (int i = 0; i < fixed_.size(); ++i) v.row(fixed_[i]).setZero();
+    start_velocity(xs, targets, s, v);
     const MatX3 x = xs + h_ * v;
     try {
       model.evaluate(x, v, fem::kForce | fem::kStiffness | (rayleigh_only ? 0 : fem::kDamping), true, st);
@@ -122,6 +156,7 @@ MatX3 LinearisedReplay::simulate(const fem::Model& model, const MatX3& x0_in, co
       throw NumericalError(os.str());
     }
     advance(dv, s, v, vs, xs);
+    place_prescribed(targets, s, xs);
     ++stats_.steps;
     out.middleRows((s + 1) * nv_, nv_) = xs;
     if (velocities) velocities->middleRows((s + 1) * nv_, nv_) = vs;

@@ -1,7 +1,8 @@
 // Forward-mode (tangent) sensitivities of the linearised replay with respect to per-element
 // log-stiffness changes; see LinearisedReplay::tangent.
 //
-// One linearised step (free DOFs): v^ = v_s with clamped rows zeroed, x = x_s + h v^,
+// One linearised step (free DOFs): v^ = v_s with clamped rows zeroed (prescribed rows: the
+// velocity to their target, which does not depend on theta), x = x_s + h v^,
 //   A dv = h (f(x, v^) + f_const),  A = M + h D + h^2 K,  v_{s+1} = v^ + dv,  x_{s+1} = x_s + h v_{s+1},
 // with K the projected tangent stiffness and D = alpha_K K + alpha_M M per element. Its
 // derivative for theta (element log-stiffness) along a direction d, holding A's dependence on
@@ -27,12 +28,13 @@ using Mat12X = Eigen::Matrix<double, 12, Eigen::Dynamic>;
 MatX3 LinearisedReplay::tangent(const fem::Model& model, const MatX3& x0_in, const MatX3& v0_in,
                                 int steps, const MatX3& f_ext, const MatX& dx0,
                                 const MatX& directions, const MatX4i& point_vertices,
-                                const MatX4& point_weights, double* out) {
+                                const MatX4& point_weights, double* out, const MatX3* targets) {
   if (model.mesh().num_vertices() != nv_ || model.mesh().num_tets() != nt_)
     throw InvalidInput("LinearisedReplay::tangent: the model's mesh differs from the replay's");
   if (model.correction() != nullptr || !model.edits().empty())
     throw InvalidInput("LinearisedReplay::tangent: needs a model without correction and stretch edits");
   if (steps < 0) throw InvalidInput("steps must be >= 0");
+  check_targets(targets, steps);
   if (f_ext.rows() != nv_) throw InvalidInput("f_ext must have shape (#V, 3)");
   const int k = static_cast<int>(directions.cols());
   if (directions.rows() != nt_) throw InvalidInput("directions must have shape (#T, k)");
@@ -74,7 +76,7 @@ MatX3 LinearisedReplay::tangent(const fem::Model& model, const MatX3& x0_in, con
   MatX Rf(n_free_, k);
   for (int s = 0; s < steps; ++s) {
     MatX3 v = vs;
-    for (int i = 0; i < fixed_.size(); ++i) v.row(fixed_[i]).setZero();
+    start_velocity(xs, targets, s, v);
     const MatX3 x = xs + h_ * v;
     try {
       model.evaluate(x, v, fem::kForce | fem::kStiffness, true, st);
@@ -91,7 +93,7 @@ MatX3 LinearisedReplay::tangent(const fem::Model& model, const MatX3& x0_in, con
     VecX dv_full = VecX::Zero(3 * nv_);
     for (int d = 0; d < 3 * nv_; ++d)
       if (dof_map_[d] >= 0) dv_full[d] = dv[dof_map_[d]];
-    // tangent right-hand sides, element by element (dV's clamped rows are zero: dV = dv^)
+    // tangent right-hand sides, element by element (dV's clamped and prescribed rows are zero: dV = dv^)
     R.setZero();
     for (int e = 0; e < nt_; ++e) {
       const double c = h_ * h_ + h_ * st.alpha_K[e];
@@ -127,6 +129,7 @@ MatX3 LinearisedReplay::tangent(const fem::Model& model, const MatX3& x0_in, con
       if (dof_map_[d] >= 0) dV.row(d) += ddv.row(dof_map_[d]);
     dX += h_ * dV;
     advance(dv, s, v, vs, xs);
+    place_prescribed(targets, s, xs);
     ++stats_.steps;
     pos.middleRows((s + 1) * nv_, nv_) = xs;
     record(s + 1);

@@ -238,6 +238,18 @@ def simulation_times(scene, rec: Recording) -> np.ndarray:
     return rec.times[0] + h * np.arange(steps + 1)
 
 
+def drive_schedule(scene, rec: Recording, sim_t, x0):
+    """(driven vertices (k,), x0 with them at their frame-0 target, their targets at the end of
+    each step (S, k, 3)) of `rec` simulated at times sim_t (S+1,) from positions x0; without drive
+    points: ((0,), x0 unchanged, None)."""
+    didx, dtargets = drive_vertices(scene, rec)
+    if not len(didx):
+        return didx, x0, None
+    x0 = np.array(x0, float)
+    x0[didx] = interpolate_frames(rec.times, dtargets, sim_t[:1])[0]
+    return didx, x0, np.ascontiguousarray(interpolate_frames(rec.times, dtargets, sim_t[1:]))
+
+
 def simulate_recording(scene, model, rec: Recording, progress=None, state=None,
                        f_ext=None, max_newton: int = 8, chunk: int | None = None, after_chunk=None,
                        steps: int | None = None):
@@ -258,12 +270,9 @@ def simulate_recording(scene, model, rec: Recording, progress=None, state=None,
         sim_t = sim_t[:steps + 1]
     steps = len(sim_t) - 1
     integ = scene.integrator(model, max_newton=max_newton)
-    didx, dtargets = drive_vertices(scene, rec)
+    didx, x0, targets = drive_schedule(scene, rec, sim_t, x0)
     if len(didx):
         integ.set_prescribed(didx)
-        x0 = np.array(x0, float)
-        x0[didx] = interpolate_frames(rec.times, dtargets, sim_t[:1])[0]
-        targets = interpolate_frames(rec.times, dtargets, sim_t[1:])
     integ.set_state(x0, v0)
 
     def run(k, s):  # k steps from step s

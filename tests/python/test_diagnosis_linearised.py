@@ -143,3 +143,77 @@ def test_tangent_refuses_models_it_cannot_differentiate(setup):
     with pytest.raises(ValueError, match="directions"):
         R.tangent(build_model(ctx, {}), V, 0 * V, 3, np.zeros((n, 3)), np.zeros((3 * n, 1)),
                   D[:5, :1], np.asarray(emb.vertices, np.int64), emb.bary)
+
+
+@pytest.fixture(scope="module")
+def driven(tmp_path_factory):
+    """A bar whose free end is driven (keyframed drive points) from a pose held by a side load,
+    markers on half the surface: the sphere cases' kind of recording."""
+    from matlearn import meshes
+    from matlearn.materials import Damping, Material
+    from matlearn.synthetic import Motion, make_case
+
+    L = 0.1
+    mesh = meshes.bar(L, 0.02, 0.02, cells=(6, 1, 1))
+    end = [[L - 0.001, -1, -1], [1, 1, 1]]
+    side = [[0.5 * L - 0.009, -1, -1], [0.5 * L + 0.009, 1, 1]]
+    drive = {"box": end, "keyframes": [[0.0, [0, 0, 0]], [0.03, [0.004, 0.006, 0]], [0.06, [0, -0.004, 0.003]]]}
+    path = make_case(tmp_path_factory.mktemp("drv"), "drv", mesh, Material("corotated", 1.5e5, 0.4, 1000.0),
+                     Damping(0.0, 0.004), mesh, Material("corotated", 1e5, 0.4, 1000.0), Damping(0.0, 0.004),
+                     [[-1, -1, -1], [1e-4, 1, 1]],
+                     [Motion("drive", "train", 0.06, load={"box": side, "force": [0, 0.4, 0]}, drive=drive)],
+                     marker_fraction=0.5, seed=1)
+    P = Problem(str(path))
+    s = P.scene
+    assert P.train[0].has_drive and not P.train[0].at_rest_initially
+    ctx = EffectContext(s.mesh, s.material, s.damping, s.fixed)
+    C = np.asarray(s.mesh.vertices)[np.asarray(s.mesh.tets)].mean(axis=1)
+    D = np.stack([(C[:, 0] < 0.04).astype(float), np.ones(len(C))], axis=1)
+    return P, ctx, D
+
+
+def test_linearised_replay_follows_drive_points_like_the_integrator(driven):
+    """The driven recording through LinearisedReplay (driven vertices prescribed) is the
+    integrator's constrained simulation with one Newton iteration per step, to the PCG tolerance."""
+    P, ctx, _ = driven
+    s, rec = P.scene, P.train[0]
+    model = build_model(ctx, {})
+    state = replay.initial_state(s, model, rec, P.embedding(rec))
+    ref = replay.simulate_recording(s, model, rec, state=state, max_newton=1)
+    sim_t, X, V = P._linearised(model, rec, state)
+    np.testing.assert_allclose(sim_t, ref[0])
+    assert np.abs(X - ref[1]).max() < 1e-9 * s.object_size
+    didx = replay.drive_vertices(s, rec)[0]
+    assert len(didx) and np.abs(X[1:, didx] - ref[1][1:, didx]).max() == 0.0  # exactly at the targets
+    # the driven vertices move (a clamped replay would leave them at rest)
+    assert np.abs(X[-1, didx] - X[0, didx]).max() > 1e-3
+    # targets are required, and must have one row per driven vertex
+    n = s.mesh.num_vertices
+    R = P.replay_runner(model, didx)
+    with pytest.raises(ValueError, match="targets"):
+        R.simulate(model, X[0], V[0], 3, np.zeros((n, 3)))
+    with pytest.raises(ValueError, match="targets"):
+        R.simulate(model, X[0], V[0], 3, np.zeros((n, 3)), targets=np.zeros((3, len(didx) + 1, 3)))
+    from matlearn import _core
+    with pytest.raises(ValueError, match="also fixed"):
+        _core.time.LinearisedReplay(model, s.fixed, s.time_step, np.zeros(3), prescribed=s.fixed[:1])
+
+
+def test_stiffness_jacobian_of_a_driven_recording_by_tangents(driven, monkeypatch):
+    """Driven recordings get tangent Jacobians too (no finite differences: every simulation is
+    one of the two residuals' or the tangent pass), matching central differences."""
+    P, ctx, D = driven
+    calls = []
+    monkeypatch.setattr(fitting, "marker_residual",
+                        lambda *a, **k: calls.append(1) or pytest.fail("finite differences used"))
+    r, J = linearised.stiffness_jacobian(P, ctx, {}, D)
+    monkeypatch.undo()
+    np.testing.assert_allclose(r, fitting.residual_of(P, ctx, {}), atol=1e-10)
+    eps = 1e-3
+    Jf = np.zeros_like(J)
+    for j in range(D.shape[1]):
+        rp = fitting.marker_residual(P, linearised._scaled(ctx, {}, eps * D[:, j]))
+        rm = fitting.marker_residual(P, linearised._scaled(ctx, {}, -eps * D[:, j]))
+        Jf[:, j] = (rp - rm) / (2 * eps)
+    assert np.all(np.linalg.norm(Jf, axis=0) > 0)
+    assert np.all(_rel(J, Jf) < 0.15), _rel(J, Jf)

@@ -14,7 +14,8 @@ linearised backward-Euler replay. `stiffness_jacobian` differentiates both:
 The result approximates the finite-difference Jacobian of `fitting.marker_residual` (tested
 against it in tests/python/test_diagnosis_linearised.py); it is used where many directions are
 needed (patches, boundary groups) and every decision made from it is re-checked by simulation.
-Recordings with drive points (not replayed by LinearisedReplay) fall back to finite differences.
+Recordings with drive points are replayed with the driven vertices prescribed (their motion is
+given: zero derivative).
 """
 from __future__ import annotations
 
@@ -41,6 +42,7 @@ def _held_pose_tangent(problem, model, rec, directions, refine: int = 3) -> np.n
     uniq, inv = np.unique(near, return_inverse=True)
     is_fixed = np.zeros(n, bool)
     is_fixed[np.asarray(scene.fixed, int)] = True
+    is_fixed[replay.drive_vertices(scene, rec)[0]] = True  # driven: at their targets, whatever the model
     held = is_fixed.copy()
     held[uniq] = True
     free = np.repeat(~held, 3)
@@ -76,8 +78,9 @@ def _held_pose_tangent(problem, model, rec, directions, refine: int = 3) -> np.n
 
 
 def recording_tangent(problem, model, rec, directions):
-    """(predicted markers (T, K, 3), their derivative (T, K, 3, k)) of one recording (no drive
-    points) for log-stiffness directions (#T, k), through the scene's LinearisedReplay."""
+    """(predicted markers (T, K, 3), their derivative (T, K, 3, k)) of one recording for
+    log-stiffness directions (#T, k), through the scene's LinearisedReplay (its drive points
+    prescribed)."""
     directions = np.ascontiguousarray(directions, float)
     return problem.remembered(rec, ("tangent", problem.fingerprint(model), directions),
                               lambda: _recording_tangent(problem, model, rec, directions))
@@ -91,11 +94,12 @@ def _recording_tangent(problem, model, rec, directions):
     emb = problem.embedding(rec)
     x0, v0 = replay.initial_state(scene, model, rec, emb)
     dx0 = _held_pose_tangent(problem, model, rec, directions)
-    runner = problem.replay_runner(model)
     sim_t = replay.simulation_times(scene, rec)
+    didx, x0, targets = replay.drive_schedule(scene, rec, sim_t, x0)
+    runner = problem.replay_runner(model, didx)
     X, dQ = runner.tangent(model, x0, v0, len(sim_t) - 1, np.zeros((n, 3)), dx0,
                            np.ascontiguousarray(directions, float),
-                           np.asarray(emb.vertices, np.int64), np.asarray(emb.bary, float))
+                           np.asarray(emb.vertices, np.int64), np.asarray(emb.bary, float), targets=targets)
     problem.simulations += 1
     Q = np.einsum("kj,tkjd->tkd", emb.bary, X[:, emb.vertices])
     P = replay.interpolate_frames(sim_t, Q, rec.times) + rest_offset(problem, rec)[None]
@@ -126,8 +130,8 @@ def stiffness_jacobian(problem, ctx, params: dict, directions, recs=None, fd_ste
     rs, Js = [], []
     for rec in recs:
         seen = rec.seen
-        tangent_ok = (problem.fast_newton == 1 and problem.reuse_factor and not rec.has_drive
-                      and model.correction is None and not list(ctx.material.edits))
+        tangent_ok = (problem.fast_newton == 1 and problem.reuse_factor and model.correction is None
+                      and not list(ctx.material.edits))
         if tangent_ok:
             try:
                 P, dP = recording_tangent(problem, model, rec, directions)

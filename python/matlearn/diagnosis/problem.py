@@ -52,7 +52,7 @@ class Problem:
         self._emb = {}
         self.simulations = 0
         self.reuse_factor = reuse_factor
-        self._replays = {}  # id(scene) -> (scene, LinearisedReplay)
+        self._replays = {}  # (id(scene), driven vertices) -> (scene, LinearisedReplay)
         self._probe = {}  # id(scene) -> (scene, x, v): the fingerprint state
         self._memo = {}  # (id(scene), id(rec), newton, fingerprint) -> (rec, scene, markers)
         self.memo_hits = 0
@@ -153,7 +153,7 @@ class Problem:
     def simulate_markers(self, model, rec, state, newton: int):
         """(markers (T, K, 3) at rec.times, (sim_t, X, V)) of `rec` simulated from `state` with
         at most `newton` Newton iterations per step (1: the scene's LinearisedReplay)."""
-        if newton == 1 and self.reuse_factor and not rec.has_drive:
+        if newton == 1 and self.reuse_factor:
             sim = self._linearised(model, rec, state)
         else:
             sim = replay.simulate_recording(self.scene, model, rec, state=state, max_newton=newton)
@@ -187,21 +187,26 @@ class Problem:
         """(sim_t, X, V) of replay.simulate_recording(max_newton=1), through the scene's
         LinearisedReplay (created on first use, its factor kept between calls)."""
         scene = self.scene
-        runner = self.replay_runner(model)
         sim_t = replay.simulation_times(scene, rec)
+        didx, x0, targets = replay.drive_schedule(scene, rec, sim_t, state[0])
+        runner = self.replay_runner(model, didx)
         n = scene.mesh.num_vertices
-        X, V = runner.simulate(model, state[0], state[1], len(sim_t) - 1, np.zeros((n, 3)))
+        X, V = runner.simulate(model, x0, state[1], len(sim_t) - 1, np.zeros((n, 3)), targets=targets)
         return sim_t, X, V
 
-    def replay_runner(self, model):
-        """The scene's LinearisedReplay (created on first use with `model`'s mesh, kept)."""
+    def replay_runner(self, model, driven=()):
+        """The scene's LinearisedReplay for the driven vertices `driven` (a recording's drive
+        points, replay.drive_schedule; none by default), created on first use with `model`'s mesh
+        and kept (one per set of driven vertices)."""
         from .. import _core
 
         scene = self.scene
-        key = id(scene)
+        driven = np.asarray(driven, np.int64)
+        key = (id(scene), driven.tobytes())
         if key not in self._replays:
             self._replays[key] = (scene, _core.time.LinearisedReplay(
-                model, scene.fixed, scene.time_step, np.asarray(scene.gravity, float)))
+                model, scene.fixed, scene.time_step, np.asarray(scene.gravity, float),
+                prescribed=driven if len(driven) else None))
         return self._replays[key][1]
 
     def residual(self, model, recs=None, fast: bool = True) -> np.ndarray:
