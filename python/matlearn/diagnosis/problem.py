@@ -20,8 +20,8 @@ class Problem:
     for fitting (1 = linearised backward Euler: ~3x cheaper, same for every candidate); gaps
     reported in diagnosis.json use the scene's full Newton solve.
 
-    Linearised simulations of recordings without drive points run through one
-    `_core.time.LinearisedReplay` per scene (the same step as the integrator's, its linear solve
+    Linearised simulations run through one `_core.time.LinearisedReplay` per scene and set of
+    driven vertices (a recording's drive points prescribed; the same step as the integrator's, its linear solve
     by conjugate gradients preconditioned with a Cholesky factor reused across steps and
     candidate models, converged to 1e-10: results equal the direct solve's to round-off, most
     factorisations are skipped). `reuse_factor=False` uses the plain integrator."""
