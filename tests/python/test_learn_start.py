@@ -50,19 +50,24 @@ def test_learning_from_the_baseline_starts_at_it_and_never_ends_above_it(case, t
     assert again.damping.alpha_stiffness == lscene.damping.alpha_stiffness
 
 
-def _cli_learn(case, tmp_path, start):
+def _cli_learn(case, tmp_path, start, *extra):
     """One short `matlearn learn` run from the given start; returns its run folder."""
     out = tmp_path / "run"
     rc = cli.main(["learn", str(case), "--out", str(out), "--iterations", "1", "--modes", "10",
-                   "--centers", "8", "--no-distill", "--quiet", "--start", start])
+                   "--centers", "8", "--no-distill", "--quiet", "--start", start, *extra])
     assert rc == 0
     return out
 
 
 def test_cli_baseline_start_saves_the_fitted_parameters_and_simulate_reproduces_it(case, tmp_path):
-    out = _cli_learn(case, tmp_path, "baseline")
+    # every standard law fitted: the kept one (the lowest train rms) is the law the saved model
+    # rebuilds, whichever it is
+    out = _cli_learn(case, tmp_path, "baseline", "--laws", "all")
     meta = json.loads((out / "model.json").read_text())
     assert meta["start"] == "baseline"
+    by_law = json.loads((out / "start.json").read_text())["train_rms_pct_by_law"]
+    assert set(by_law) == set(start_mod.STANDARD_LAWS)
+    assert meta["base_material"]["model"] == min(by_law, key=by_law.get)
     sc = load_scene(case)
     assert meta["base_material"]["youngs_modulus"] != pytest.approx(float(np.mean(sc.material.youngs_modulus)))
     full = scene_model(sc, out)
