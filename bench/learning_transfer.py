@@ -125,9 +125,11 @@ def print_table(rows):
 
 def merge(parts, out: Path) -> int:
     docs = [json.loads(Path(p).read_text()) for p in parts]
-    rows = {c["case"]: c for d in docs for c in d["cases"]}
+    # each row keeps the commit of the run that produced it (parts written before rows carried it: their file's)
+    rows = {c["case"]: {**c, "code_commit": c.get("code_commit", d.get("code_commit"))} for d in docs for c in d["cases"]}
     order = list(targets())
     doc = {k: v for k, v in docs[-1].items() if k != "cases"}
+    doc["code_commit"] = sorted({r["code_commit"] for r in rows.values() if r.get("code_commit")})
     doc["cases"] = sorted(rows.values(), key=lambda c: order.index(c["case"]) if c["case"] in order else 99)
     out.write_text(json.dumps(doc, indent=1))
     print_table(doc["cases"])
@@ -156,7 +158,9 @@ def main() -> int:
            "cases": []}
     for name in args.cases.split(","):
         print(f"== {name}", flush=True)
-        doc["cases"].append(run_case(name, work, args.iterations, args.baseline_evals))
+        row = run_case(name, work, args.iterations, args.baseline_evals)
+        row["code_commit"] = doc["code_commit"]
+        doc["cases"].append(row)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(doc, indent=1))
     print_table(doc["cases"])

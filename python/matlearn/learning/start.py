@@ -44,9 +44,11 @@ with the true force difference at the same trajectory, and every fitted update r
 error from 0.25 % to 0.79-0.94 % (a fit of the true force difference reaches 0.15 % in one
 step), so the loop creeps on by shortened steps and ends at 0.19 % train; from the nominal start
 the 20 % modulus error dominates the control forces and the loop reaches 0.13 % train
-(bench/results/learning_table_nominal_start.json). bench/results/learning_table.json (5d6bdaa)
-keeps the nominal start on the tension sphere and both damping bars, the fitted start on the
-compression sphere, and the field on the turtle, the StVK bar and both layered bars.
+(bench/results/learning_table_nominal_start.json); with the StVK law among the fitted laws
+(`laws`, STANDARD_LAWS) that nonlinearity is in the start. bench/results/learning_table.json
+(session 30) keeps the nominal start on the tension sphere and the first damping bar, the fitted
+start on the compression sphere and the second damping bar, and the field on the turtle, the
+StVK bar and both layered bars.
 RUN/best_start.json records every start's train error and the choice.
 """
 from __future__ import annotations
