@@ -116,8 +116,8 @@ class TangentJacobian:
     sharing each step's factorisation; the held pose differentiated too), in place of one full
     simulation per patch. Rows in the order of `baseline.marker_residual_pct` over the same
     recordings; None from __call__ where the layouts differ (then the caller falls back to
-    finite differences). Recordings with drive points are differentiated by finite differences
-    inside stiffness_jacobian."""
+    finite differences). Recordings with drive points are replayed with the driven vertices
+    prescribed (their motion is given), tangents too."""
 
     def __init__(self, scene, damping, labels):
         from ..diagnosis.linearised import patch_directions
