@@ -181,7 +181,7 @@ def test_a_best_run_that_kept_a_field_gives_other_meshes_its_homogeneous_model(c
     run = tmp_path / "run"
     field_info = {"material": start_mod.spec_dict(field_mat), "damping": start_mod.spec_dict(sc.damping),
                   "material_homogeneous": start_mod.spec_dict(field_mod.homogeneous(field_mat, sc.mesh.rest_volumes)),
-                  "material_mesh": field_mod.mesh_fingerprint(sc.mesh), "transfer_run": "start_baseline"}
+                  "material_mesh": field_mod.mesh_fingerprint(sc.mesh), "transfer_start": "baseline"}
     base_info = {"material": start_mod.spec_dict(Material("corotated", 2.5e5, 0.4, 1000.0)),
                  "damping": start_mod.spec_dict(sc.damping)}
     save_model(run / "start_baseline", start_mod.zero_params(), meta=start_mod.model_meta(base_info))
@@ -193,7 +193,7 @@ def test_a_best_run_that_kept_a_field_gives_other_meshes_its_homogeneous_model(c
     np.testing.assert_allclose(mu_other, 2.5e5 / (2 * 1.4), rtol=1e-12)
     # without a transfer model (a `--start field` run): the field's log-mean
     save_model(run, start_mod.zero_params(), meta={"start": "field", **start_mod.model_meta(
-        {k: v for k, v in field_info.items() if k != "transfer_run"})})
+        {k: v for k, v in field_info.items() if k != "transfer_start"})})
     E_h = field_info["material_homogeneous"]["youngs_modulus"]
     np.testing.assert_allclose(np.asarray(scene_model(other, run).mu), E_h / (2 * 1.4), rtol=1e-12)
 

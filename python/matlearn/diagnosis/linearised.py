@@ -94,9 +94,7 @@ def _recording_tangent(problem, model, rec, directions):
     emb = problem.embedding(rec)
     x0, v0 = replay.initial_state(scene, model, rec, emb)
     dx0 = _held_pose_tangent(problem, model, rec, directions)
-    sim_t = replay.simulation_times(scene, rec)
-    didx, x0, targets = replay.drive_schedule(scene, rec, sim_t, x0)
-    runner = problem.replay_runner(model, didx)
+    runner, sim_t, x0, targets = problem.linearised_setup(model, rec, x0)
     X, dQ = runner.tangent(model, x0, v0, len(sim_t) - 1, np.zeros((n, 3)), dx0,
                            np.ascontiguousarray(directions, float),
                            np.asarray(emb.vertices, np.int64), np.asarray(emb.bary, float), targets=targets)

@@ -186,13 +186,18 @@ class Problem:
     def _linearised(self, model, rec, state):
         """(sim_t, X, V) of replay.simulate_recording(max_newton=1), through the scene's
         LinearisedReplay (created on first use, its factor kept between calls)."""
-        scene = self.scene
-        sim_t = replay.simulation_times(scene, rec)
-        didx, x0, targets = replay.drive_schedule(scene, rec, sim_t, state[0])
-        runner = self.replay_runner(model, didx)
-        n = scene.mesh.num_vertices
+        runner, sim_t, x0, targets = self.linearised_setup(model, rec, state[0])
+        n = self.scene.mesh.num_vertices
         X, V = runner.simulate(model, x0, state[1], len(sim_t) - 1, np.zeros((n, 3)), targets=targets)
         return sim_t, X, V
+
+    def linearised_setup(self, model, rec, x0):
+        """(LinearisedReplay with rec's driven vertices prescribed, simulation times, x0 with the
+        driven vertices at their first target, their targets per step or None): what a linearised
+        simulation or tangent pass of `rec` from positions x0 runs with."""
+        sim_t = replay.simulation_times(self.scene, rec)
+        didx, x0, targets = replay.drive_schedule(self.scene, rec, sim_t, x0)
+        return self.replay_runner(model, didx), sim_t, x0, targets
 
     def replay_runner(self, model, driven=()):
         """The scene's LinearisedReplay for the driven vertices `driven` (a recording's drive

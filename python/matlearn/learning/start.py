@@ -208,9 +208,14 @@ def model_meta(info: dict) -> dict:
     if "material_homogeneous" in info:
         meta["base_material_homogeneous"] = info["material_homogeneous"]
         meta["base_material_mesh"] = info["material_mesh"]
-    if info.get("transfer_run"):  # "best" kept a field: the material model for other meshes
-        meta["transfer_model"] = info["transfer_run"]
+    if info.get("transfer_start"):  # "best" kept a field: the material model for other meshes
+        meta["transfer_model"] = start_folder(info["transfer_start"])
     return meta
+
+
+def start_folder(name: str) -> str:
+    """The folder (in a "best" run's RUN) where start `name` learns and saves its model."""
+    return f"start_{name}"
 
 
 def zero_params():
@@ -239,8 +244,8 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
     (module docstring; ties: PREFERENCE). Each start runs in RUN/start_<name> (resumable on its own). Returns (the scene
     learned on, start info, learn result, run folder of the kept start); the info has
     start="best", chosen, train_max_error_pct per start, the kept start's fitted material and
-    damping when it is the baseline or the field, transfer_start / transfer_run (the best start
-    without a field, whose model other meshes get) when it is the field, and each start's test
+    damping when it is the baseline or the field, transfer_start (the best start
+    without a field, whose model in RUN/start_<name> other meshes get) when it is the field, and each start's test
     errors for the record (test_per_recording_max_pct; not used). Every start's learned model
     is saved in its folder (io.save_model, no MLP)."""
     if learn_fn is None:
@@ -248,7 +253,7 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
     run_dir = Path(run_dir)
     runs = {}
     for name in STARTS:
-        sub = run_dir / f"start_{name}"
+        sub = run_dir / start_folder(name)
         if log:
             log(f"start '{name}' (best-start mode, {sub})")
         if name == "field":  # on top of the baseline start's fit, not fitted again
@@ -279,7 +284,7 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
     transfer = None
     if chosen == "field":
         transfer = transfer_start(train)
-        out["transfer_start"], out["transfer_run"] = transfer, runs[transfer][3].name
+        out["transfer_start"] = transfer
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / BEST_JSON).write_text(json.dumps({"chosen": chosen, "run": sub.name, "transfer": transfer,
                                                  "train_max_error_pct": train}, indent=1))
