@@ -38,7 +38,7 @@ from matlearn.learning import field
 from matlearn.learning.baseline import marker_residual_pct
 from matlearn.materials import Material
 from matlearn.scene import load_scene
-from learning_scale import build as scale_case
+from learning_scale import add_case_arguments, build as scale_case
 from provenance import code_commit
 
 ROOT = Path(__file__).resolve().parent
@@ -64,10 +64,7 @@ def timed(fn):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tets", type=int, default=5000)
-    ap.add_argument("--duration", type=float, default=1.0)
-    ap.add_argument("--frame-rate", type=float, default=200.0)
-    ap.add_argument("--marker-fraction", type=float, default=0.13)
+    add_case_arguments(ap)
     ap.add_argument("--patches", type=int, default=128)
     ap.add_argument("--iterations", type=int, default=8)
     ap.add_argument("--work", default="/tmp/matlearn_field_scale")

@@ -144,12 +144,17 @@ def stride_check(sc, stride: int) -> dict:
             "load_avg_1min_end": os.getloadavg()[0], "commit": code_commit(("cpp", "python", "bench/learning_scale.py"))}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_case_arguments(ap) -> None:
+    """The case's size options (`build`'s arguments), shared with bench/field_scale.py."""
     ap.add_argument("--tets", type=int, default=5000)
     ap.add_argument("--duration", type=float, default=1.0)
     ap.add_argument("--frame-rate", type=float, default=200.0)
     ap.add_argument("--marker-fraction", type=float, default=0.13)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_case_arguments(ap)
     ap.add_argument("--iterations", type=int, default=4, help="max outer iterations of the loop")
     ap.add_argument("--tangent-stride", type=int, default=10)
     ap.add_argument("--ridge-search", default="first", choices=("first", "all"))
