@@ -37,8 +37,7 @@ from matlearn.embedding import embed_points
 from matlearn.learning import field
 from matlearn.learning.baseline import marker_residual_pct
 from matlearn.materials import Material
-from matlearn.scene import load_scene
-from learning_scale import add_case_arguments, build as scale_case
+from learning_scale import add_case_arguments, build as scale_case, load_case
 from provenance import code_commit
 
 ROOT = Path(__file__).resolve().parent
@@ -71,11 +70,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(RESULTS))
     args = ap.parse_args(argv)
 
-    work = Path(args.work)
-    t0 = time.perf_counter()
-    path = build(work, args.tets, args.duration, args.frame_rate, args.marker_fraction)
-    case_s = time.perf_counter() - t0
-    sc = load_scene(path)
+    sc, case_s = load_case(args, build)
     recs = sc.recordings_with_role("train")
     embs = [embed_points(sc.mesh, r.marker_rest) for r in recs]
     base = sc.material

@@ -152,6 +152,14 @@ def add_case_arguments(ap) -> None:
     ap.add_argument("--marker-fraction", type=float, default=0.13)
 
 
+def load_case(args, build_fn=None):
+    """(scene, build wall seconds) of the case the size options of `args` (add_case_arguments)
+    describe, built in args.work by `build_fn` (default: this bench's `build`)."""
+    t0 = time.perf_counter()
+    path = (build_fn or build)(Path(args.work), args.tets, args.duration, args.frame_rate, args.marker_fraction)
+    return load_scene(path), time.perf_counter() - t0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_case_arguments(ap)
@@ -177,10 +185,7 @@ def main(argv=None) -> int:
                          "--tangent-stride, added to the existing JSON as tangent_stride_check")
     args = ap.parse_args(argv)
     work = Path(args.work)
-    t0 = time.time()
-    path = build(work, args.tets, args.duration, args.frame_rate, args.marker_fraction)
-    case_s = time.time() - t0
-    sc = load_scene(path)
+    sc, case_s = load_case(args)
     if args.stride_check:
         doc = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
         doc["tangent_stride_check"] = chk = stride_check(sc, args.tangent_stride)
