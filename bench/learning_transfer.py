@@ -6,7 +6,9 @@ iterations at most) the learned model (its start
 material and damping + its correction, saved as `matlearn learn` saves it) is rebuilt on a
 second object of the same hidden material: another shape, meshed independently, with held-out
 motions of its own. Scored there beside the nominal guess and the parameter-fitting baseline
-fitted on the source (the Wang-2015 parameters transfer too). Writes
+fitted on the source (the Wang-2015 parameters transfer too). Each row also says whether the
+source's train recordings determine the learned model's stress scale (learning/identify.py, the
+check `matlearn learn` runs): where they do not, the model is not expected to transfer. Writes
 bench/results/learning_transfer.json and prints a table.
 
 Usage: python bench/learning_transfer.py [--cases dragon,bar_damping_2,sphere_compression]
@@ -34,6 +36,8 @@ from matlearn.cases import _release  # noqa: E402  (the learning table's tip-loa
 from matlearn.learning import LearnOptions, save_model, transfer_score  # noqa: E402
 from matlearn.learning.baseline import fit_parameters  # noqa: E402
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS  # noqa: E402
+from matlearn.learning.identify import stress_scale_check  # noqa: E402
+from matlearn.learning.io import scene_model  # noqa: E402
 from matlearn.learning.start import STANDARD_LAWS, learn_from, model_meta, zero_params  # noqa: E402
 from matlearn.replay import score  # noqa: E402
 from matlearn.scene import load_scene  # noqa: E402
@@ -89,6 +93,8 @@ def run_case(name: str, work: Path, iterations: int, baseline_evals: int) -> dic
     model_dir = work / "runs" / name
     save_model(model_dir, params, None, meta={"start": "best", **model_meta(sinfo)})
     learn_wall = time.time() - t0
+    check = stress_scale_check(src, lambda f: scene_model(src, model_dir, stress_factor=f))
+    print("   ", check["message"], flush=True)
     tname, mesh, clamp, motions, note = targets()[name]
     path = make_case(work / "targets", tname, mesh, kw["truth_material"], kw["truth_damping"], mesh,
                      kw["nominal_material"], kw["nominal_damping"], clamp, motions,
@@ -109,6 +115,8 @@ def run_case(name: str, work: Path, iterations: int, baseline_evals: int) -> dic
         "max_error_pct_test": learned, "baseline_max_error_pct_test": baseline,
         "nominal_max_error_pct_test": nominal, "baseline_law": law, "start_chosen": sinfo.get("chosen"),
         "iterations": int(len(res["metrics"]) - 1), "learn_wall_s": learn_wall,
+        "source_stress_scale": {k: check[k] for k in ("determined", "best_factor", "factors", "rms_error_pct",
+                                                      "motion_rms_pct")},
         "ratio_baseline_over_learned": [b / max(a, 1e-12) for a, b in zip(learned, baseline)],
     }
 
@@ -116,11 +124,12 @@ def run_case(name: str, work: Path, iterations: int, baseline_evals: int) -> dic
 def print_table(rows):
     f = lambda v: "/".join(f"{x:.2f}" for x in v)  # noqa: E731
     print(f"{'source':20s} {'target':20s} {'tets':>9s} {'nominal':>12s} {'baseline':>12s} {'learned':>12s} "
-          f"{'base/learned':>13s}")
+          f"{'base/learned':>13s} {'scale fixed':>11s}")
     for r in rows:
         print(f"{r['case']:20s} {r['target']:20s} {r['source_tets']:4d}>{r['target_tets']:<4d} "
               f"{f(r['nominal_max_error_pct_test']):>12s} {f(r['baseline_max_error_pct_test']):>12s} "
-              f"{f(r['max_error_pct_test']):>12s} {f(r['ratio_baseline_over_learned']):>13s}")
+              f"{f(r['max_error_pct_test']):>12s} {f(r['ratio_baseline_over_learned']):>13s} "
+              f"{str(r.get('source_stress_scale', {}).get('determined', '?')):>11s}")
 
 
 def merge(parts, out: Path) -> int:

@@ -71,6 +71,18 @@ def run(args) -> int:
         summary["distill"] = {**tinfo, **compare(params.correction(), mlp_correction(mlp), X, Y)}
     save_model(out, params, mlp, meta={"scene": summary["scene"], "best_iteration": res["best_iteration"],
                                        "start": args.start, **model_meta(start)})
+    # does the stress level follow from the recordings? (a slowly driven object's does not)
+    from ..learning.identify import stress_scale_check
+    from ..learning.io import add_meta, scene_model
+
+    tscene = res["scene"]
+    check = stress_scale_check(tscene, lambda f: scene_model(tscene, out, stress_factor=f))
+    summary["stress_scale"] = check
+    add_meta(out, stress_scale_determined=check["determined"], stress_scale_message=check["message"])
+    if not check["determined"]:
+        print(f"warning: {check['message']}", file=sys.stderr)
+    elif log:
+        log(check["message"])
     plot_convergence(res["metrics"], out / "convergence.png")
     import numpy as np
 

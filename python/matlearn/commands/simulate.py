@@ -2,6 +2,7 @@
 optionally a ParaView time series."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,26 @@ def load_correction(run_dir, scene):
             f"--model needs matlearn.learning.load_model, which is not available ({err})"
         ) from err
     return scene_model(scene, run_dir)
+
+
+def warn_stress_scale(run_dir, scene_path, replaying: bool) -> str | None:
+    """The warning for a model whose recordings did not determine its stress scale
+    (learning.identify; model.json `stress_scale_determined`), used for anything but a replay of
+    the scene it was learned on: another object, or a load (a known force). None otherwise."""
+    import json
+
+    from ..learning.io import MODEL_JSON
+
+    info = json.loads((Path(run_dir) / MODEL_JSON).read_text())
+    if info.get("stress_scale_determined", True):
+        return None
+    own = info.get("scene") and Path(info["scene"]).resolve() == Path(scene_path).resolve()
+    if own and replaying:
+        return None
+    return (f"warning: {run_dir} was learned from recordings that do not determine its stress scale "
+            f"({info.get('stress_scale_message', 'model.json')}); this simulation "
+            + ("is of another scene" if not own else "is not a replay of its recordings (a load, gravity)")
+            + ", so its deformation may be off by that factor")
 
 
 def load_forces(scene, model, force, box) -> np.ndarray:
@@ -97,6 +118,9 @@ def run(args) -> int:
     if vtu is not None and (vtu / "frame.pvd").exists() and not args.force:
         raise ValueError(f"--vtu {vtu} already holds a time series (frame.pvd); use --force to replace it")
     model = load_correction(args.model, scene) if args.model else scene.model()
+    warning = warn_stress_scale(args.model, args.scene, args.replay is not None) if args.model else None
+    if warning:
+        print(warning, file=sys.stderr)
     bar = ProgressBar("simulate", enabled=not args.quiet)
     points = _marker_points(scene, args)  # before simulating: bad marker input fails fast
     if args.replay is not None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,14 @@ def save_model(run_dir, rbf: RbfParams, mlp: dict | None = None, meta: dict | No
             "mlp_layers": len(mlp["layers"]) if mlp is not None else 0, **(meta or {})}
     (run / MODEL_JSON).write_text(json.dumps(info, indent=1))
     return run / MODEL_NPZ
+
+
+def add_meta(run_dir, **meta) -> None:
+    """Add keys to the metadata (model.json) of a saved run."""
+    path = Path(run_dir) / MODEL_JSON
+    info = json.loads(path.read_text())
+    info.update(meta)
+    path.write_text(json.dumps(info, indent=1))
 
 
 def load_rbf(run_dir) -> RbfParams:
@@ -95,13 +104,16 @@ def load_model(run_dir, kind: str | None = None):
                          f"it is damaged or incomplete (learn again, or --resume the run)") from None
 
 
-def scene_model(scene, run_dir, kind: str | None = None):
+def scene_model(scene, run_dir, kind: str | None = None, stress_factor: float = 1.0):
     """The learned model of run `run_dir` on `scene`: the scene's nominal material and damping
     (or the run's `base_material` / `base_damping`, when it started from the baseline fit) plus
     the learned correction. A run started from a stiffness field (start "field") applies its
     per-element modulus on the mesh it was fitted on only; another mesh gets the model named by
     `transfer_model` (a "best" run: the best homogeneous start's, learned without a field) or,
-    without one, the field's volume-weighted log-mean (`base_material_homogeneous`)."""
+    without one, the field's volume-weighted log-mean (`base_material_homogeneous`).
+    stress_factor: every stress of the model (elastic, correction, stiffness damping) scaled by
+    it, as its density divided by it (exact with gravity as the only external force;
+    identify.stress_scale_check)."""
     from .field import mesh_fingerprint
     from .start import damping_from_dict, material_from_dict
 
@@ -113,7 +125,7 @@ def scene_model(scene, run_dir, kind: str | None = None):
         # a "best" run that kept a field: another mesh gets the best homogeneous start's model
         sub = Path(run_dir) / info["transfer_model"]
         sub_info = json.loads((sub / MODEL_JSON).read_text()) if (sub / MODEL_JSON).exists() else {}
-        return scene_model(scene, sub, kind if sub_info.get("has_mlp") else None)
+        return scene_model(scene, sub, kind if sub_info.get("has_mlp") else None, stress_factor)
     if foreign:
         # a per-element stiffness field (start "field") belongs to the mesh it was fitted on:
         # another mesh gets the field's volume-weighted log-mean modulus
@@ -122,4 +134,10 @@ def scene_model(scene, run_dir, kind: str | None = None):
         raise ValueError(f"{run_dir}: the learned model has a per-element Young's modulus for "
                          f"{np.size(mat.youngs_modulus)} tets; this scene's mesh has {scene.mesh.num_tets}")
     damp = damping_from_dict(info["base_damping"]) if info.get("base_damping") else None
+    if stress_factor != 1.0:
+        if not stress_factor > 0:
+            raise ValueError(f"stress_factor must be > 0, got {stress_factor}")
+        mat = mat or scene.material
+        rho = np.asarray(mat.density, float) / stress_factor
+        mat = replace(mat, density=float(rho) if rho.ndim == 0 else rho)
     return scene.model(correction, material=mat, damping=damp)

@@ -1,0 +1,101 @@
+"""Whether the recordings determine a learned model's stress scale (learning/identify.py,
+`matlearn learn`'s check and `matlearn simulate --model`'s warning)."""
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from matlearn import cli, meshes
+from matlearn.learning import stress_scale_check
+from matlearn.materials import Damping, Material
+from matlearn.replay import initial_state, simulate_recording
+from matlearn.scene import load_scene
+from matlearn.synthetic import Motion, make_case
+
+from learning_cases import small_bar_case
+
+L = 0.08
+
+
+def driven_bar(folder, gravity=(0.0, 0.0, 0.0)):
+    """A bar clamped at one end whose other end is moved slowly up and down (keyframes, 0.3 s,
+    well below its first frequency): near equilibrium between clamp and drive at any stiffness."""
+    mesh = meshes.bar(L, 0.02, 0.02, cells=(5, 1, 1))
+    tip = [[L - 0.011, -1, -1], [1, 1, 1]]
+    kf = [[0.0, [0, 0, 0]], [0.1, [0, 0.006, 0]], [0.2, [0, -0.006, 0]], [0.3, [0, 0, 0]]]
+    motions = [Motion("drive", "train", 0.3, drive={"box": tip, "keyframes": kf}),
+               Motion("drive", "test", 0.3, drive={"box": tip, "keyframes": [[t, [0, 0, 1.5 * d[1]]]
+                                                                            for t, d in kf]})]
+    return make_case(folder, "driven", mesh, Material("neo_hookean", 2e5, 0.43, 1000.0), Damping(0.0, 0.004),
+                     mesh, Material("corotated", 3.5e5, 0.43, 1000.0), Damping(0.0, 0.004),
+                     [[-1, -1, -1], [1e-4, 1, 1]], motions, marker_fraction=0.5, seed=3, gravity=list(gravity))
+
+
+def density_scaled(scene, material=None, damping=None):
+    mat = material or scene.material
+    return lambda f: scene.model(material=replace(mat, density=mat.density / f), damping=damping)
+
+
+def test_density_over_a_factor_is_every_stress_times_it(tmp_path):
+    """The check's premise: with gravity the only external force, a model with its density / f
+    moves exactly like the model with its modulus (hence every stress, the stiffness damping
+    included) x f; the mass damping acts on both alike."""
+    scene = load_scene(small_bar_case(tmp_path))
+    mat, damp, f = scene.material, Damping(3.0, 0.004), 2.5
+    rec = scene.recordings_with_role("train")[0]
+    state = initial_state(scene, scene.model(damping=damp), rec)
+    stiff = simulate_recording(scene, scene.model(material=replace(mat, youngs_modulus=f * mat.youngs_modulus),
+                                                  damping=damp), rec, state=state)[1]
+    light = simulate_recording(scene, density_scaled(scene, damping=damp)(f), rec, state=state)[1]
+    plain = simulate_recording(scene, scene.model(damping=damp), rec, state=state)[1]
+    moved = np.abs(plain - plain[0]).max()
+    assert np.abs(stiff - plain).max() > 0.2 * moved  # the factor matters here
+    assert np.abs(stiff - light).max() < 1e-6 * moved
+
+
+def test_a_release_determines_the_stress_scale_and_a_slow_drive_does_not(tmp_path):
+    released = load_scene(small_bar_case(tmp_path / "a"))
+    c = stress_scale_check(released, density_scaled(released))
+    # the nominal model is 1.75x too stiff (3.5e5 against the truth's 2e5 Pa): the check finds
+    # the recordings' scale at the grid point nearest 1 / 1.75, sharply
+    assert c["determined"] and c["best_factor"] == 0.5, c
+    rms = dict(zip(c["factors"], c["rms_error_pct"]))
+    assert rms[0.25] > 5 * rms[0.5] and rms[1.0] > 2.5 * rms[0.5], c
+    assert "not the model's own" in c["message"]
+    truth = replace(released.material, model="neo_hookean", youngs_modulus=2e5)
+    c = stress_scale_check(released, density_scaled(released, truth))
+    assert c["determined"] and c["best_factor"] == 1.0, c
+    driven = load_scene(driven_bar(tmp_path / "b"))
+    c = stress_scale_check(driven, density_scaled(driven))
+    assert not c["determined"], c
+    assert max(c["rms_error_pct"]) < 0.03, c  # % of the size: the motion is the drive's at any scale
+    assert "do not determine" in c["message"]
+    # gravity across the bar makes the scale visible again (the sag depends on it)
+    sagging = load_scene(driven_bar(tmp_path / "c", gravity=(0.0, 0.0, -9.81 * 40)))
+    assert stress_scale_check(sagging, density_scaled(sagging))["determined"]
+    with pytest.raises(ValueError, match="one >= 2"):
+        stress_scale_check(driven, density_scaled(driven), factors=(0.5, 1.5))
+
+
+def test_learn_reports_an_undetermined_scale_and_simulate_warns_off_its_recordings(tmp_path, capsys):
+    case = driven_bar(tmp_path / "cases")
+    run = tmp_path / "run"
+    assert cli.main(["learn", str(case), "--out", str(run), "--iterations", "1", "--modes", "8",
+                     "--centers", "8", "--no-distill", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the train recordings do not determine the stress scale" in err
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["stress_scale"]["determined"] is False
+    assert json.loads((run / "model.json").read_text())["stress_scale_determined"] is False
+    # a replay of its own recordings: no warning; a free motion or another object: warned
+    assert cli.main(["simulate", str(case), "--model", str(run), "--replay", "0",
+                     "--out", str(tmp_path / "replay.npz"), "--quiet"]) == 0
+    assert "stress scale" not in capsys.readouterr().err
+    other = small_bar_case(tmp_path / "other")
+    assert cli.main(["simulate", str(other), "--model", str(run), "--replay", "0",
+                     "--out", str(tmp_path / "other.npz"), "--quiet"]) == 0
+    assert "is of another scene" in capsys.readouterr().err
+    assert cli.main(["simulate", str(case), "--model", str(run), "--duration", "0.05",
+                     "--out", str(tmp_path / "free.npz"), "--quiet"]) == 0
+    assert "is not a replay of its recordings" in capsys.readouterr().err
