@@ -79,7 +79,7 @@ def run(args) -> int:
     check = stress_scale_check(tscene, lambda f: scene_model(tscene, out, stress_factor=f))
     summary["stress_scale"] = check
     add_meta(out, stress_scale_determined=check["determined"], stress_scale_message=check["message"])
-    if not check["determined"]:
+    if not check["determined"] or check["best_factor"] != 1.0:  # free, or the model off the data's scale
         print(f"warning: {check['message']}", file=sys.stderr)
     elif log:
         log(check["message"])
