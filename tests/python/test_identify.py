@@ -8,6 +8,7 @@ import pytest
 
 from matlearn import cli, meshes
 from matlearn.learning import stress_scale_check
+from matlearn.learning.identify import with_stress_factor
 from matlearn.materials import Damping, Material
 from matlearn.replay import initial_state, simulate_recording
 from matlearn.scene import load_scene
@@ -33,8 +34,7 @@ def driven_bar(folder, gravity=(0.0, 0.0, 0.0)):
 
 
 def density_scaled(scene, material=None, damping=None):
-    mat = material or scene.material
-    return lambda f: scene.model(material=replace(mat, density=mat.density / f), damping=damping)
+    return lambda f: scene.model(material=with_stress_factor(material or scene.material, f), damping=damping)
 
 
 def test_density_over_a_factor_is_every_stress_times_it(tmp_path):

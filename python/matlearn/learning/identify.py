@@ -28,6 +28,17 @@ DETERMINED_RATIO = 2.0
 VISIBLE = 0.1
 
 
+def with_stress_factor(material, f: float):
+    """`material` whose every stress acts f times as strongly: its density divided by f (the
+    module docstring: exact with gravity as the only external force)."""
+    from dataclasses import replace
+
+    if not f > 0:
+        raise ValueError(f"stress_factor must be > 0, got {f}")
+    rho = np.asarray(material.density, float) / f
+    return replace(material, density=float(rho) if rho.ndim == 0 else rho)
+
+
 def _rms(scene, model, role: str) -> float:
     """Pooled rms marker error (% of the size) of `role` replays; inf when a replay fails (a
     scaled model that cannot be simulated is certainly not what the recordings show)."""

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import zipfile
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -135,9 +134,7 @@ def scene_model(scene, run_dir, kind: str | None = None, stress_factor: float = 
                          f"{np.size(mat.youngs_modulus)} tets; this scene's mesh has {scene.mesh.num_tets}")
     damp = damping_from_dict(info["base_damping"]) if info.get("base_damping") else None
     if stress_factor != 1.0:
-        if not stress_factor > 0:
-            raise ValueError(f"stress_factor must be > 0, got {stress_factor}")
-        mat = mat or scene.material
-        rho = np.asarray(mat.density, float) / stress_factor
-        mat = replace(mat, density=float(rho) if rho.ndim == 0 else rho)
+        from .identify import with_stress_factor
+
+        mat = with_stress_factor(mat or scene.material, stress_factor)
     return scene.model(correction, material=mat, damping=damp)
