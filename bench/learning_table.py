@@ -30,7 +30,7 @@ from matlearn.embedding import embed_points
 from matlearn.learning import LearnOptions
 from matlearn.learning.baseline import baseline_test_errors, fit_parameters
 from matlearn.learning.fit import EXTRAPOLATION_WEIGHTS
-from matlearn.learning.identify import stress_scale_check, with_stress_factor
+from matlearn.learning.identify import check_learned
 from matlearn.learning.start import MODES, STANDARD_LAWS, learn_from
 from matlearn.materials import Material, make_model
 from matlearn.replay import SCORE_START, STARTS, score
@@ -81,9 +81,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
     # wall_s: the start fit (3 parameters, start=baseline/best) and the learning loop(s)
     wall = time.time() - t0
     # do the train recordings fix the learned model's stress scale? (what `matlearn learn` checks)
-    corr = res["params"].correction() if res["params"] is not None else None
-    check = stress_scale_check(lscene, lambda f: lscene.model(corr, material=with_stress_factor(lscene.material, f)))
-    log(check["message"])
+    check = sinfo.get("stress_scale") or check_learned(lscene, res["params"])
     final_test = res["final"]["test"]  # scored inside the loop; None: a test recording diverged
     learned = final_test["per_recording_max_pct"] if final_test else [float("nan")] * len(test_recs)
     return {
@@ -113,6 +111,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
         "learned_train_max_error_pct": res["final"]["train"]["max_error_pct"],
         "stress_scale": {k: check[k] for k in ("determined", "best_factor", "factors", "rms_error_pct",
                                                "motion_rms_pct")},
+        "transfer_start": sinfo.get("transfer_start"),
         "test_recordings": len(test_recs),
         "paper_max_error_pct": cases.PAPER_ERROR.get(spec.name),
         "target_max_error_pct": cases.TARGET_ERROR.get(spec.name),

@@ -1,6 +1,7 @@
 """Shared learning test helpers: the small learning case of the loop and end-to-end tests (a
 neo-Hookean bar learned from a co-rotated nominal model: release from a tip load; the test pulls
-harder) and the nominal energy used by the passivity tests."""
+harder), a slowly driven bar (its stress scale free) and the nominal energy used by the passivity
+tests."""
 from __future__ import annotations
 
 import numpy as np
@@ -21,6 +22,20 @@ def small_bar_case(folder):
                      Material("neo_hookean", 2e5, 0.43, 1000.0), Damping(0.0, 0.004),
                      mesh, Material("corotated", 3.5e5, 0.43, 1000.0), Damping(0.0, 0.004),
                      [[-1, -1, -1], [1e-4, 1, 1]], motions, marker_fraction=0.5, seed=3)
+
+
+def driven_bar(folder, gravity=(0.0, 0.0, 0.0)):
+    """A bar clamped at one end whose other end is moved slowly up and down (keyframes, 0.3 s,
+    well below its first frequency): near equilibrium between clamp and drive at any stiffness."""
+    mesh = meshes.bar(L, 0.02, 0.02, cells=(5, 1, 1))
+    tip = [[L - 0.011, -1, -1], [1, 1, 1]]
+    kf = [[0.0, [0, 0, 0]], [0.1, [0, 0.006, 0]], [0.2, [0, -0.006, 0]], [0.3, [0, 0, 0]]]
+    motions = [Motion("drive", "train", 0.3, drive={"box": tip, "keyframes": kf}),
+               Motion("drive", "test", 0.3, drive={"box": tip, "keyframes": [[t, [0, 0, 1.5 * d[1]]]
+                                                                            for t, d in kf]})]
+    return make_case(folder, "driven", mesh, Material("neo_hookean", 2e5, 0.43, 1000.0), Damping(0.0, 0.004),
+                     mesh, Material("corotated", 3.5e5, 0.43, 1000.0), Damping(0.0, 0.004),
+                     [[-1, -1, -1], [1e-4, 1, 1]], motions, marker_fraction=0.5, seed=3, gravity=list(gravity))
 
 
 def released_from_bent_pose(sc, model, steps: int = 200):

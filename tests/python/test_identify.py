@@ -6,31 +6,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from matlearn import cli, meshes
+from matlearn import cli
 from matlearn.learning import stress_scale_check
 from matlearn.learning.identify import with_stress_factor
-from matlearn.materials import Damping, Material
+from matlearn.materials import Damping
 from matlearn.replay import initial_state, simulate_recording
 from matlearn.scene import load_scene
-from matlearn.synthetic import Motion, make_case
 
-from learning_cases import small_bar_case
-
-L = 0.08
-
-
-def driven_bar(folder, gravity=(0.0, 0.0, 0.0)):
-    """A bar clamped at one end whose other end is moved slowly up and down (keyframes, 0.3 s,
-    well below its first frequency): near equilibrium between clamp and drive at any stiffness."""
-    mesh = meshes.bar(L, 0.02, 0.02, cells=(5, 1, 1))
-    tip = [[L - 0.011, -1, -1], [1, 1, 1]]
-    kf = [[0.0, [0, 0, 0]], [0.1, [0, 0.006, 0]], [0.2, [0, -0.006, 0]], [0.3, [0, 0, 0]]]
-    motions = [Motion("drive", "train", 0.3, drive={"box": tip, "keyframes": kf}),
-               Motion("drive", "test", 0.3, drive={"box": tip, "keyframes": [[t, [0, 0, 1.5 * d[1]]]
-                                                                            for t, d in kf]})]
-    return make_case(folder, "driven", mesh, Material("neo_hookean", 2e5, 0.43, 1000.0), Damping(0.0, 0.004),
-                     mesh, Material("corotated", 3.5e5, 0.43, 1000.0), Damping(0.0, 0.004),
-                     [[-1, -1, -1], [1e-4, 1, 1]], motions, marker_fraction=0.5, seed=3, gravity=list(gravity))
+from learning_cases import driven_bar, small_bar_case
 
 
 def density_scaled(scene, material=None, damping=None):

@@ -250,3 +250,39 @@ def test_a_kept_fields_transfer_model_prefers_the_fitted_law_on_a_near_tie():
     tie = 1 + start_mod.TRANSFER_TIE
     assert t({"nominal": 0.1, "baseline": 0.1 * tie * 0.999, "field": 0.0}) == "baseline"
     assert t({"nominal": 0.1, "baseline": 0.1 * tie * 1.001, "field": 0.0}) == "nominal"
+
+
+def test_a_kept_fitted_start_with_a_free_stress_scale_gives_other_meshes_the_nominal_starts_model(
+        tmp_path, monkeypatch):
+    """A slowly driven bar does not fix the stress scale (identify.py): where the fitted start is
+    kept, another mesh gets the nominal start's model, the user's modulus, not the fitted one."""
+    import dataclasses
+
+    from matlearn import meshes
+    from matlearn.learning import field as field_mod
+    from matlearn.learning.io import save_model
+
+    from learning_cases import driven_bar
+
+    sc = load_scene(driven_bar(tmp_path / "cases"))
+    fitted = {"material": sc.material.__class__("corotated", 1.2e5, 0.43, 1000.0),
+              "damping": sc.damping.__class__(0.0, 0.004), "evaluations": 1}
+    monkeypatch.setattr(start_mod, "fit_parameters", lambda *a, **k: fitted)
+    monkeypatch.setattr(field_mod, "fit_stiffness_field", lambda scene, material, damping, **kw: (
+        material.__class__(material.model, material.youngs_modulus * np.linspace(0.9, 1.1, scene.mesh.num_tets),
+                           material.poisson_ratio, material.density), {}))
+    train = {"nominal": 0.20, "baseline": 0.10, "field": 0.15}
+    learn_fn, _ = _fake_learn(train, {n: [0.1] for n in train})
+    scene, info, res, run = start_mod.learn_best_start(sc, tmp_path / "run", learn_fn=learn_fn)
+    assert info["chosen"] == "baseline" and not info["stress_scale"]["determined"]
+    assert info["transfer_start"] == "nominal"
+    save_model(tmp_path / "run", start_mod.zero_params(), None, meta={"start": "best", **start_mod.model_meta(info)})
+    E = lambda m: float(np.mean(2 * m.mu * (1 + 0.43)))  # noqa: E731
+    assert E(scene_model(sc, tmp_path / "run")) == pytest.approx(1.2e5)  # its own mesh: the kept fit
+    other = dataclasses.replace(sc, mesh=meshes.bar(0.06, 0.02, 0.02, cells=(4, 1, 1)), fixed=[], recordings=[])
+    assert E(scene_model(other, tmp_path / "run")) == pytest.approx(3.5e5)  # another: the nominal
+    # the same choice on a release, whose recordings fix the scale: no transfer model
+    rel = load_scene(small_bar_case(tmp_path / "rel"))
+    _, info, _, _ = start_mod.learn_best_start(rel, tmp_path / "run_rel", learn_fn=learn_fn)
+    assert info["chosen"] == "baseline" and info["stress_scale"]["determined"]
+    assert "transfer_start" not in info and "transfer_model" not in start_mod.model_meta(info)

@@ -71,12 +71,14 @@ def run(args) -> int:
         summary["distill"] = {**tinfo, **compare(params.correction(), mlp_correction(mlp), X, Y)}
     save_model(out, params, mlp, meta={"scene": summary["scene"], "best_iteration": res["best_iteration"],
                                        "start": args.start, **model_meta(start)})
-    # does the stress level follow from the recordings? (a slowly driven object's does not)
+    # does the stress level follow from the recordings? (a slowly driven object's does not;
+    # a best-start run has checked its kept model already)
     from ..learning.identify import stress_scale_check
     from ..learning.io import add_meta, scene_model
 
     tscene = res["scene"]
-    check = stress_scale_check(tscene, lambda f: scene_model(tscene, out, stress_factor=f))
+    check = start.get("stress_scale") or stress_scale_check(
+        tscene, lambda f: scene_model(tscene, out, stress_factor=f))
     summary["stress_scale"] = check
     add_meta(out, stress_scale_determined=check["determined"], stress_scale_message=check["message"])
     if not check["determined"] or check["best_factor"] != 1.0:  # free, or the model off the data's scale

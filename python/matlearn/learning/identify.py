@@ -39,6 +39,14 @@ def with_stress_factor(material, f: float):
     return replace(material, density=float(rho) if rho.ndim == 0 else rho)
 
 
+def check_learned(scene, params, role: str = "train") -> dict:
+    """stress_scale_check of `scene`'s own material and damping plus the correction `params`
+    (RbfParams; None: no correction), as a learning run leaves them."""
+    corr = params.correction() if params is not None else None
+    return stress_scale_check(scene, lambda f: scene.model(corr, material=with_stress_factor(scene.material, f)),
+                              role)
+
+
 def _rms(scene, model, role: str) -> float:
     """Pooled rms marker error (% of the size) of `role` replays; inf when a replay fails (a
     scaled model that cannot be simulated is certainly not what the recordings show)."""

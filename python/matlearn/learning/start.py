@@ -50,6 +50,14 @@ the 20 % modulus error dominates the control forces and the loop reaches 0.13 % 
 start on the compression sphere and the second damping bar, and the field on the turtle, the
 StVK bar and both layered bars.
 RUN/best_start.json records every start's train error and the choice.
+
+The model other objects get (`transfer_model`, io.scene_model): the kept one, except that a
+kept field names the best homogeneous start's model (:func:`transfer_start`), and a kept fitted
+start whose train recordings do not determine the stress scale (learning/identify.py) names the
+nominal start's: where the data are silent the user's nominal modulus is the better guess
+(the compression sphere, driven by a keyframed cap: its fitted start, E = 4.6e4 Pa against the
+truth's 1e5 and the nominal 1.2e5, transfers to a post under gravity at 0.96 / 1.19 %, the
+nominal start's model at 0.23 / 0.72, the nominal model itself at 0.26 / 0.96).
 """
 from __future__ import annotations
 
@@ -208,8 +216,9 @@ def model_meta(info: dict) -> dict:
     if "material_homogeneous" in info:
         meta["base_material_homogeneous"] = info["material_homogeneous"]
         meta["base_material_mesh"] = info["material_mesh"]
-    if info.get("transfer_start"):  # "best" kept a field: the material model for other meshes
+    if info.get("transfer_start"):  # "best" kept a field or a free stress scale: the model for other meshes
         meta["transfer_model"] = start_folder(info["transfer_start"])
+        meta["base_material_mesh"] = info["material_mesh"]
     return meta
 
 
@@ -244,8 +253,10 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
     (module docstring; ties: PREFERENCE). Each start runs in RUN/start_<name> (resumable on its own). Returns (the scene
     learned on, start info, learn result, run folder of the kept start); the info has
     start="best", chosen, train_max_error_pct per start, the kept start's fitted material and
-    damping when it is the baseline or the field, transfer_start (the best start
-    without a field, whose model in RUN/start_<name> other meshes get) when it is the field, and each start's test
+    damping when it is the baseline or the field, stress_scale (identify.check_learned of the
+    kept model), transfer_start (the start whose model in RUN/start_<name> other meshes get: the
+    nominal one when the kept fitted start's stress scale is not determined, else the best start
+    without a field when the field is kept), and each start's test
     errors for the record (test_per_recording_max_pct; not used). Every start's learned model
     is saved in its folder (io.save_model, no MLP)."""
     if learn_fn is None:
@@ -281,10 +292,22 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
     for name, (_, i, r, d) in runs.items():
         save_model(d, r["params"] if r["params"] is not None else zero_params(), None,
                    meta={"start": name, **model_meta(i)})
+    # does the kept model's stress scale follow from the train recordings? (identify.py)
+    from .identify import check_learned
+    from .field import mesh_fingerprint
+
+    check = check_learned(sc, res["params"])
+    out["stress_scale"] = check
+    if log:
+        log(("" if check["determined"] else "warning: ") + check["message"])
     transfer = None
-    if chosen == "field":
+    if not check["determined"] and chosen != "nominal":
+        transfer = "nominal"  # the scale the data leave free: the user's nominal one
+    elif chosen == "field":
         transfer = transfer_start(train)
+    if transfer is not None:
         out["transfer_start"] = transfer
+        out.setdefault("material_mesh", mesh_fingerprint(scene.mesh))
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / BEST_JSON).write_text(json.dumps({"chosen": chosen, "run": sub.name, "transfer": transfer,
                                                  "train_max_error_pct": train}, indent=1))
