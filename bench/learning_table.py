@@ -82,6 +82,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
     wall = time.time() - t0
     # do the train recordings fix the learned model's stress scale? (what `matlearn learn` checks)
     check = sinfo.get("stress_scale") or check_learned(lscene, res["params"])
+    log(check["message"])
     final_test = res["final"]["test"]  # scored inside the loop; None: a test recording diverged
     learned = final_test["per_recording_max_pct"] if final_test else [float("nan")] * len(test_recs)
     return {

@@ -92,6 +92,7 @@ def run_case(name: str, work: Path, iterations: int, baseline_evals: int) -> dic
     save_model(model_dir, params, None, meta={"start": "best", **model_meta(sinfo)})
     learn_wall = time.time() - t0
     check = sinfo["stress_scale"]  # learn_best_start's check of the kept model
+    log(check["message"])
     tname, mesh, clamp, motions, note = targets()[name]
     path = make_case(work / "targets", tname, mesh, kw["truth_material"], kw["truth_damping"], mesh,
                      kw["nominal_material"], kw["nominal_damping"], clamp, motions,

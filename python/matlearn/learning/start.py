@@ -296,10 +296,8 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
     from .identify import check_learned
     from .field import mesh_fingerprint
 
-    check = check_learned(sc, res["params"])
+    check = check_learned(sc, res["params"])  # reported by the caller (the CLI warns)
     out["stress_scale"] = check
-    if log:
-        log(("" if check["determined"] else "warning: ") + check["message"])
     transfer = None
     if not check["determined"] and chosen != "nominal":
         transfer = "nominal"  # the scale the data leave free: the user's nominal one
