@@ -82,3 +82,22 @@ def test_learn_reports_an_undetermined_scale_and_simulate_warns_off_its_recordin
     assert cli.main(["simulate", str(case), "--model", str(run), "--duration", "0.05",
                      "--out", str(tmp_path / "free.npz"), "--quiet"]) == 0
     assert "is not a replay of its recordings" in capsys.readouterr().err
+
+
+def test_simulate_warning_follows_the_runs_metadata(tmp_path):
+    from matlearn.commands.simulate import warn_stress_scale
+
+    own, other = tmp_path / "scene.toml", tmp_path / "other.toml"
+
+    def warning(meta, scene, replaying):
+        (tmp_path / "model.json").write_text(json.dumps({"scene": str(own), **meta}))
+        return warn_stress_scale(tmp_path, scene, replaying)
+
+    free = {"stress_scale_determined": False, "stress_scale_message": "x0.5-x4 alike"}
+    assert warning({"stress_scale_determined": True}, other, False) is None
+    assert warning({}, other, False) is None  # runs from before the check: nothing to say
+    assert warning(free, own, True) is None
+    assert "is not a replay" in warning(free, own, False) and "x0.5-x4 alike" in warning(free, own, False)
+    assert "is of another scene" in warning(free, other, True)
+    assert "start_nominal's model" in warning({**free, "transfer_model": "start_nominal"}, other, True)
+    assert "start_nominal" not in warning({**free, "transfer_model": "start_nominal"}, own, False)

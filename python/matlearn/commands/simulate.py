@@ -44,10 +44,13 @@ def warn_stress_scale(run_dir, scene_path, replaying: bool) -> str | None:
     own = info.get("scene") and Path(info["scene"]).resolve() == Path(scene_path).resolve()
     if own and replaying:
         return None
+    fallback = ""
+    if not own and info.get("transfer_model"):  # learning.start.learn_best_start: the nominal start's model
+        fallback = f" (another scene gets {info['transfer_model']}'s model, learned at your nominal modulus)"
     return (f"warning: {run_dir} was learned from recordings that do not determine its stress scale "
             f"({info.get('stress_scale_message', 'model.json')}); this simulation "
             + ("is of another scene" if not own else "is not a replay of its recordings (a load, gravity)")
-            + ", so its deformation may be off by that factor")
+            + f", so its deformation may be off by that factor{fallback}")
 
 
 def load_forces(scene, model, force, box) -> np.ndarray:

@@ -110,5 +110,5 @@ def stress_scale_check(scene, model_of, role: str = "train", factors=SCALE_GRID)
                    f"itself: {motion:.3g} %). The model reproduces motions like these, but under a known force "
                    f"(a load, a release, gravity on another shape) its stiffness may be off by such a factor; "
                    f"a recording with a known force (a release from a held load, a sag) fixes it")
-    return {"factors": fs, "rms_error_pct": rms, "motion_rms_pct": motion, "best_factor": best, "determined": bool(determined),
-            "message": message}
+    return {"factors": fs, "rms_error_pct": rms, "motion_rms_pct": motion, "best_factor": best,
+            "determined": bool(determined), "message": message}

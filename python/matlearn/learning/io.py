@@ -108,7 +108,8 @@ def scene_model(scene, run_dir, kind: str | None = None, stress_factor: float = 
     (or the run's `base_material` / `base_damping`, when it started from the baseline fit) plus
     the learned correction. A run started from a stiffness field (start "field") applies its
     per-element modulus on the mesh it was fitted on only; another mesh gets the model named by
-    `transfer_model` (a "best" run: the best homogeneous start's, learned without a field) or,
+    `transfer_model` (a "best" run: the nominal start's when the kept fitted start's stress scale
+    is free, else the best homogeneous start's when it kept a field; start.learn_best_start) or,
     without one, the field's volume-weighted log-mean (`base_material_homogeneous`).
     stress_factor: every stress of the model (elastic, correction, stiffness damping) scaled by
     it, as its density divided by it (exact with gravity as the only external force;
@@ -121,7 +122,7 @@ def scene_model(scene, run_dir, kind: str | None = None, stress_factor: float = 
     mat = material_from_dict(info["base_material"]) if info.get("base_material") else None
     foreign = bool(info.get("base_material_mesh")) and info["base_material_mesh"] != mesh_fingerprint(scene.mesh)
     if foreign and info.get("transfer_model"):
-        # a "best" run that kept a field: another mesh gets the best homogeneous start's model
+        # a "best" run that kept a field or a free stress scale: another mesh gets the named start's model
         sub = Path(run_dir) / info["transfer_model"]
         sub_info = json.loads((sub / MODEL_JSON).read_text()) if (sub / MODEL_JSON).exists() else {}
         return scene_model(scene, sub, kind if sub_info.get("has_mlp") else None, stress_factor)
