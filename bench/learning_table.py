@@ -81,7 +81,7 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
     # wall_s: the start fit (3 parameters, start=baseline/best) and the learning loop(s)
     wall = time.time() - t0
     # do the train recordings fix the learned model's stress scale? (what `matlearn learn` checks)
-    check = sinfo.get("stress_scale") or check_learned(lscene, res["params"])
+    check = sinfo.get("stress_scale") or check_learned(res["scene"], res["params"])
     log(check["message"])
     final_test = res["final"]["test"]  # scored inside the loop; None: a test recording diverged
     learned = final_test["per_recording_max_pct"] if final_test else [float("nan")] * len(test_recs)

@@ -296,7 +296,8 @@ def learn_best_start(scene, run_dir, options=None, warm: dict | None = None, max
     from .identify import check_learned
     from .field import mesh_fingerprint
 
-    check = check_learned(sc, res["params"])  # reported by the caller (the CLI warns)
+    # on the scene the loop learned on: cloud-only recordings replaced by their tracked markers
+    check = check_learned(res["scene"], res["params"])  # reported by the caller (the CLI warns)
     out["stress_scale"] = check
     transfer = None
     if not check["determined"] and chosen != "nominal":
