@@ -73,12 +73,10 @@ def run(args) -> int:
                                        "start": args.start, **model_meta(start)})
     # does the stress level follow from the recordings? (a slowly driven object's does not;
     # a best-start run has checked its kept model already)
-    from ..learning.identify import stress_scale_check
-    from ..learning.io import add_meta, scene_model
+    from ..learning.identify import check_learned
+    from ..learning.io import add_meta
 
-    tscene = res["scene"]
-    check = start.get("stress_scale") or stress_scale_check(
-        tscene, lambda f: scene_model(tscene, out, stress_factor=f))
+    check = start.get("stress_scale") or check_learned(res["scene"], params)
     summary["stress_scale"] = check
     add_meta(out, stress_scale_determined=check["determined"], stress_scale_message=check["message"])
     if not check["determined"] or check["best_factor"] != 1.0:  # free, or the model off the data's scale

@@ -78,7 +78,8 @@ def stress_scale_check(scene, model_of, role: str = "train", factors=SCALE_GRID)
     """How strongly the `role` recordings of `scene` fix the stress scale of a model.
 
     model_of(f): the model with every stress scaled by f (f = 1: as given), e.g.
-    ``lambda f: io.scene_model(scene, RUN, stress_factor=f)``. factors: the scales tried besides
+    ``lambda f: scene.model(material=with_stress_factor(scene.material, f))``
+    (check_learned). factors: the scales tried besides
     1 (at least one <= 0.5 and one >= 2).
     Returns dict(factors (sorted, 1 included), rms_error_pct (per factor, % of the object size),
     motion_rms_pct (motion_rms), best_factor (the lowest rms), determined, message (one line for

@@ -103,17 +103,14 @@ def load_model(run_dir, kind: str | None = None):
                          f"it is damaged or incomplete (learn again, or --resume the run)") from None
 
 
-def scene_model(scene, run_dir, kind: str | None = None, stress_factor: float = 1.0):
+def scene_model(scene, run_dir, kind: str | None = None):
     """The learned model of run `run_dir` on `scene`: the scene's nominal material and damping
     (or the run's `base_material` / `base_damping`, when it started from the baseline fit) plus
     the learned correction. A run started from a stiffness field (start "field") applies its
     per-element modulus on the mesh it was fitted on only; another mesh gets the model named by
     `transfer_model` (a "best" run: the nominal start's when the kept fitted start's stress scale
     is free, else the best homogeneous start's when it kept a field; start.learn_best_start) or,
-    without one, the field's volume-weighted log-mean (`base_material_homogeneous`).
-    stress_factor: every stress of the model (elastic, correction, stiffness damping) scaled by
-    it, as its density divided by it (exact with gravity as the only external force;
-    identify.stress_scale_check)."""
+    without one, the field's volume-weighted log-mean (`base_material_homogeneous`)."""
     from .field import mesh_fingerprint
     from .start import damping_from_dict, material_from_dict
 
@@ -125,7 +122,7 @@ def scene_model(scene, run_dir, kind: str | None = None, stress_factor: float = 
         # a "best" run that kept a field or a free stress scale: another mesh gets the named start's model
         sub = Path(run_dir) / info["transfer_model"]
         sub_info = json.loads((sub / MODEL_JSON).read_text()) if (sub / MODEL_JSON).exists() else {}
-        return scene_model(scene, sub, kind if sub_info.get("has_mlp") else None, stress_factor)
+        return scene_model(scene, sub, kind if sub_info.get("has_mlp") else None)
     if foreign:
         # a per-element stiffness field (start "field") belongs to the mesh it was fitted on:
         # another mesh gets the field's volume-weighted log-mean modulus
@@ -134,8 +131,4 @@ def scene_model(scene, run_dir, kind: str | None = None, stress_factor: float = 
         raise ValueError(f"{run_dir}: the learned model has a per-element Young's modulus for "
                          f"{np.size(mat.youngs_modulus)} tets; this scene's mesh has {scene.mesh.num_tets}")
     damp = damping_from_dict(info["base_damping"]) if info.get("base_damping") else None
-    if stress_factor != 1.0:
-        from .identify import with_stress_factor
-
-        mat = with_stress_factor(mat or scene.material, stress_factor)
     return scene.model(correction, material=mat, damping=damp)
