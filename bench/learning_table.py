@@ -112,6 +112,8 @@ def run_case(spec, work: Path, iterations: int, baseline_evals: int, start: str,
         "learned_train_max_error_pct": res["final"]["train"]["max_error_pct"],
         "stress_scale": {k: check[k] for k in ("determined", "best_factor", "factors", "rms_error_pct",
                                                "motion_rms_pct")},
+        "stress_scale_by_recording": [{k: r[k] for k in ("file", "determined", "best_factor")}
+                                      for r in check["recordings"]],
         "transfer_start": sinfo.get("transfer_start"),
         "test_recordings": len(test_recs),
         "paper_max_error_pct": cases.PAPER_ERROR.get(spec.name),

@@ -115,6 +115,8 @@ def run_case(name: str, work: Path, iterations: int, baseline_evals: int) -> dic
         "iterations": int(len(res["metrics"]) - 1), "learn_wall_s": learn_wall,
         "source_stress_scale": {k: check[k] for k in ("determined", "best_factor", "factors", "rms_error_pct",
                                                       "motion_rms_pct")},
+        "source_stress_scale_by_recording": [{k: r[k] for k in ("file", "determined", "best_factor")}
+                                             for r in check["recordings"]],
         "transfer_start": sinfo.get("transfer_start"),
         "ratio_baseline_over_learned": [b / max(a, 1e-12) for a, b in zip(learned, baseline)],
     }

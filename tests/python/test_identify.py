@@ -8,7 +8,7 @@ import pytest
 
 from matlearn import cli
 from matlearn.learning import stress_scale_check
-from matlearn.learning.identify import with_stress_factor
+from matlearn.learning.identify import VISIBLE, with_stress_factor
 from matlearn.materials import Damping
 from matlearn.replay import initial_state, simulate_recording
 from matlearn.scene import load_scene
@@ -59,6 +59,30 @@ def test_a_release_determines_the_stress_scale_and_a_slow_drive_does_not(tmp_pat
     assert stress_scale_check(sagging, density_scaled(sagging))["determined"]
     with pytest.raises(ValueError, match="one >= 2"):
         stress_scale_check(driven, density_scaled(driven), factors=(0.5, 1.5))
+
+
+def test_the_check_names_the_recordings_that_carry_the_scale(tmp_path):
+    """A release and a slow drive together: the pair determines the scale, and the check says
+    that the release does so on its own while the drive leaves it free (from the same replays)."""
+    mixed = load_scene(driven_bar(tmp_path / "m", release_first=True))
+    c = stress_scale_check(mixed, density_scaled(mixed))
+    assert c["determined"] and c["best_factor"] == 0.5, c
+    # ... although the pooled errors alone would not say so: the drive's motion raises the bar
+    rms = dict(zip(c["factors"], c["rms_error_pct"]))
+    assert rms[2.0] - rms[0.5] < VISIBLE * c["motion_rms_pct"], c
+    release, drive = c["recordings"]
+    assert (release["file"], release["determined"], release["best_factor"]) == ("train_0.npz", True, 0.5), c
+    assert drive["file"] == "train_1.npz" and not drive["determined"], c
+    assert max(drive["rms_error_pct"]) < 0.03 < min(release["rms_error_pct"]), c
+    assert "on its own train_0.npz determines it, train_1.npz leaves it free" in c["message"]
+    # the pooled errors are the samples' rms over the recordings' errors
+    n = [np.isfinite(rec.markers[..., 0]).sum() for rec in mixed.recordings_with_role("train")]
+    pooled = np.sqrt((n[0] * np.square(release["rms_error_pct"]) + n[1] * np.square(drive["rms_error_pct"]))
+                     / sum(n))
+    assert np.allclose(pooled, c["rms_error_pct"], rtol=1e-9), c
+    driven = load_scene(driven_bar(tmp_path / "d"))
+    one = stress_scale_check(driven, density_scaled(driven))
+    assert len(one["recordings"]) == 1 and "on its own" not in one["message"]
 
 
 def test_learn_reports_an_undetermined_scale_and_simulate_warns_off_its_recordings(tmp_path, capsys):

@@ -16,7 +16,11 @@ The scale counts as determined when the lowest train rms error lies inside the g
 factor at least 2x away from it raises the rms DETERMINED_RATIO times or more, and by at least
 VISIBLE of the recordings' own motion (the rms marker displacement from where each marker is
 first seen): noise-free data make even a 0.01 % change of a slowly driven motion a large ratio.
-Measured on the learning table's models: their releases and flicks change by 0.25-2.2 times their
+The rule is also applied to every recording on its own (its replay errors are in the same
+simulations), so the message says which recordings carry the scale, and one that determines the
+scale on its own, at the pooled errors' best factor, determines it for all: a slowly driven
+recording adds its motion to the pooled VISIBLE bar but nothing to the errors' spread. Measured on the learning
+table's models: their releases and flicks change by 0.25-2.2 times their
 motion at x0.5 and x2, the two driven spheres by 0.05 at most, a slowly driven test bar by 0.003.
 """
 from __future__ import annotations
@@ -47,31 +51,49 @@ def check_learned(scene, params, role: str = "train") -> dict:
                               role)
 
 
-def _rms(scene, model, role: str) -> float:
-    """Pooled rms marker error (% of the size) of `role` replays; inf when a replay fails (a
-    scaled model that cannot be simulated is certainly not what the recordings show)."""
+def _replay_rms(scene, model, role: str, count: int) -> tuple[float, list[float]]:
+    """Pooled and per-recording rms marker error (% of the size) of the `role` replays (`count`
+    recordings with markers); all inf when a replay fails (a scaled model that cannot be
+    simulated is certainly not what the recordings show)."""
     from ..replay import score
 
     try:
-        return float(score(scene, model, role)["rms_error_pct"])
+        s = score(scene, model, role)
     except (RuntimeError, FloatingPointError):
-        return float("inf")
+        return float("inf"), [float("inf")] * count
+    return float(s["rms_error_pct"]), [float(r["rms_error_pct"]) for r in s["recordings"]]
+
+
+def _displacements(rec) -> np.ndarray:
+    """Distances of a recording's seen marker samples from where each marker is first seen."""
+    seen = rec.seen
+    ref = rec.markers[np.argmax(seen, axis=0), np.arange(rec.num_markers)]
+    return np.linalg.norm(rec.markers - ref[None], axis=2)[seen]
+
+
+def _marker_recordings(scene, role: str) -> list:
+    """(file name, recording) of the `role` recordings with markers, as replay.score takes them."""
+    return [(p.name, rec) for p, rec in zip(scene.recording_paths(role), scene.recordings_with_role(role))
+            if rec.num_markers > 0]
 
 
 def motion_rms(scene, role: str = "train") -> float:
     """The rms displacement (% of the object size) of the `role` recordings' markers from where
     each is first seen, over all seen samples."""
-    d = []
-    for rec in scene.recordings_with_role(role):
-        seen = rec.seen
-        if not seen.any():
-            continue
-        ref = rec.markers[np.argmax(seen, axis=0), np.arange(rec.num_markers)]
-        d.append(np.linalg.norm(rec.markers - ref[None], axis=2)[seen])
+    d = [_displacements(rec) for _, rec in _marker_recordings(scene, role) if rec.seen.any()]
     if not d:
         raise ValueError(f"the scene has no '{role}' recording with seen markers")
     d = np.concatenate(d)
     return float(100.0 * np.sqrt(np.mean(d**2)) / scene.object_size)
+
+
+def _decide(fs: list, rms: list, motion: float) -> tuple[int, bool]:
+    """(index of the lowest rms, determined): the module docstring's rule."""
+    i = int(np.argmin(rms))
+    best, low = fs[i], rms[i]
+    far = [r for f, r in zip(fs, rms) if max(f / best, best / f) >= 2.0 - 1e-9]
+    return i, bool(0 < i < len(fs) - 1 and all(r >= DETERMINED_RATIO * low and r - low >= VISIBLE * motion
+                                               for r in far))
 
 
 def stress_scale_check(scene, model_of, role: str = "train", factors=SCALE_GRID) -> dict:
@@ -82,34 +104,60 @@ def stress_scale_check(scene, model_of, role: str = "train", factors=SCALE_GRID)
     (check_learned). factors: the scales tried besides
     1 (at least one <= 0.5 and one >= 2).
     Returns dict(factors (sorted, 1 included), rms_error_pct (per factor, % of the object size),
-    motion_rms_pct (motion_rms), best_factor (the lowest rms), determined, message (one line for
-    the user))."""
+    motion_rms_pct (motion_rms), best_factor (the lowest rms), determined, recordings (per
+    recording with markers: file, rms_error_pct, motion_rms_pct, best_factor, determined, the same
+    rule applied to that recording alone: which recordings carry the scale, for a user choosing
+    what to record), message (one line for the user))."""
     fs = sorted({1.0, *(float(f) for f in factors)})
     if fs[0] <= 0 or fs[0] > 0.5 or fs[-1] < 2.0:
         raise ValueError(f"stress scale factors must be positive with one <= 0.5 and one >= 2, got {list(factors)}")
-    rms = [_rms(scene, model_of(f), role) for f in fs]
+    recs = _marker_recordings(scene, role)
+    runs = [_replay_rms(scene, model_of(f), role, len(recs)) for f in fs]
+    rms = [r[0] for r in runs]
     if not np.isfinite(rms[fs.index(1.0)]):
         raise RuntimeError(f"the model cannot replay the {role} recordings")
-    i = int(np.argmin(rms))
-    best, low = fs[i], rms[i]
     motion = motion_rms(scene, role)
-    far = [r for f, r in zip(fs, rms) if max(f / best, best / f) >= 2.0 - 1e-9]
-    determined = 0 < i < len(fs) - 1 and all(r >= DETERMINED_RATIO * low and r - low >= VISIBLE * motion
-                                             for r in far)
+    i, determined = _decide(fs, rms, motion)
+    best, low = fs[i], rms[i]
+    per = []
+    for k, (name, rec) in enumerate(recs):
+        r_k = [run[1][k] for run in runs]
+        d = _displacements(rec)
+        m_k = float(100.0 * np.sqrt(np.mean(d**2)) / scene.object_size) if d.size else 0.0
+        j, det = _decide(fs, r_k, m_k)
+        per.append({"file": name, "rms_error_pct": r_k, "motion_rms_pct": m_k, "best_factor": fs[j],
+                    "determined": det})
+    # a recording that fixes the scale on its own fixes it for all (where the pooled errors agree
+    # on the factor): the pooled rule's VISIBLE bar grows with recordings that carry no scale
+    determined = determined or any(p["determined"] and p["best_factor"] == best for p in per)
+    fixing = [p["file"] for p in per if p["determined"]]
+    free = [p["file"] for p in per if not p["determined"]]
+
+    def said(files, one, each):
+        return f"{files[0]} {one}" if len(files) == 1 else f"{', '.join(files)} each {each}"
+
+    if len(per) < 2:
+        which = ""
+    elif fixing and free:
+        which = f"; on its own {said(fixing, 'determines', 'determine')} it, {said(free, 'leaves', 'leave')} it free"
+    elif fixing:
+        which = "; every recording on its own determines it"
+    else:
+        which = "; no recording on its own determines it"
     shown = ", ".join(f"x{f:g}: {r:.3g} %" for f, r in zip(fs, rms))
     if determined and best == 1.0:
-        message = f"the {role} recordings determine the stress scale ({role} rms error {shown})"
+        message = f"the {role} recordings determine the stress scale ({role} rms error {shown}{which})"
     elif determined:
         message = (f"the {role} recordings determine a stress scale {best:g} times the model's, not the "
-                   f"model's own ({role} rms error {shown})")
+                   f"model's own ({role} rms error {shown}{which})")
     else:
         near = [f for f, r in zip(fs, rms) if r < DETERMINED_RATIO * low or r - low < VISIBLE * motion]
         span = f"x{near[0]:g}" + (" or less" if near[0] == fs[0] else "")
         span += f" to x{near[-1]:g}" + (" or more" if near[-1] == fs[-1] else "")
         message = (f"the {role} recordings do not determine the stress scale: with every stress scaled "
                    f"from {span} the {role} rms error stays near its lowest ({shown}; the recorded motion "
-                   f"itself: {motion:.3g} %). The model reproduces motions like these, but under a known force "
+                   f"itself: {motion:.3g} %{which}). The model reproduces motions like these, but under a known force "
                    f"(a load, a release, gravity on another shape) its stiffness may be off by such a factor; "
                    f"a recording with a known force (a release from a held load, a sag) fixes it")
     return {"factors": fs, "rms_error_pct": rms, "motion_rms_pct": motion, "best_factor": best,
-            "determined": bool(determined), "message": message}
+            "determined": bool(determined), "recordings": per, "message": message}
