@@ -74,7 +74,7 @@ def test_the_check_names_the_recordings_that_carry_the_scale(tmp_path):
     assert (release["file"], release["determined"], release["best_factor"]) == ("train_0.npz", True, 0.5), c
     assert drive["file"] == "train_1.npz" and not drive["determined"], c
     assert max(drive["rms_error_pct"]) < 0.03 < min(release["rms_error_pct"]), c
-    assert "on its own train_0.npz determines it, train_1.npz leaves it free" in c["message"]
+    assert "on its own train_0.npz (x0.5) determines it, train_1.npz leaves it free" in c["message"]
     # the pooled errors are the samples' rms over the recordings' errors
     n = [np.isfinite(rec.markers[..., 0]).sum() for rec in mixed.recordings_with_role("train")]
     pooled = np.sqrt((n[0] * np.square(release["rms_error_pct"]) + n[1] * np.square(drive["rms_error_pct"]))

@@ -19,9 +19,9 @@ first seen): noise-free data make even a 0.01 % change of a slowly driven motion
 The rule is also applied to every recording on its own (its replay errors are in the same
 simulations), so the message says which recordings carry the scale, and one that determines the
 scale on its own, at the pooled errors' best factor, determines it for all: a slowly driven
-recording adds its motion to the pooled VISIBLE bar but nothing to the errors' spread. Measured on the learning
-table's models: their releases and flicks change by 0.25-2.2 times their
-motion at x0.5 and x2, the two driven spheres by 0.05 at most, a slowly driven test bar by 0.003.
+recording adds its motion to the pooled VISIBLE bar but nothing to the errors' spread. Measured
+on the learning table's models: their releases and flicks change by 0.25-2.2 times their motion
+at x0.5 and x2, the two driven spheres by 0.05 at most, a slowly driven test bar by 0.003.
 """
 from __future__ import annotations
 
@@ -130,7 +130,7 @@ def stress_scale_check(scene, model_of, role: str = "train", factors=SCALE_GRID)
     # a recording that fixes the scale on its own fixes it for all (where the pooled errors agree
     # on the factor): the pooled rule's VISIBLE bar grows with recordings that carry no scale
     determined = determined or any(p["determined"] and p["best_factor"] == best for p in per)
-    fixing = [p["file"] for p in per if p["determined"]]
+    fixing = [f"{p['file']} (x{p['best_factor']:g})" for p in per if p["determined"]]
     free = [p["file"] for p in per if not p["determined"]]
 
     def said(files, one, each):
