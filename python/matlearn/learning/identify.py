@@ -71,20 +71,31 @@ def _displacements(rec) -> np.ndarray:
     return np.linalg.norm(rec.markers - ref[None], axis=2)[seen]
 
 
+def _rms_pct(d: np.ndarray, size: float) -> float:
+    """The rms of distances `d` in % of `size` (0 for none)."""
+    return float(100.0 * np.sqrt(np.mean(d**2)) / size) if d.size else 0.0
+
+
 def _marker_recordings(scene, role: str) -> list:
     """(file name, recording) of the `role` recordings with markers, as replay.score takes them."""
     return [(p.name, rec) for p, rec in zip(scene.recording_paths(role), scene.recordings_with_role(role))
             if rec.num_markers > 0]
 
 
+def _motions(scene, recs: list, role: str) -> tuple[float, list[float]]:
+    """(pooled, per recording) rms marker displacement (% of the size) of `recs` ((name,
+    recording) pairs) from where each marker is first seen, over all seen samples."""
+    d = [_displacements(rec) for _, rec in recs]
+    if not any(x.size for x in d):
+        raise ValueError(f"the scene has no '{role}' recording with seen markers")
+    size = scene.object_size
+    return _rms_pct(np.concatenate(d), size), [_rms_pct(x, size) for x in d]
+
+
 def motion_rms(scene, role: str = "train") -> float:
     """The rms displacement (% of the object size) of the `role` recordings' markers from where
     each is first seen, over all seen samples."""
-    d = [_displacements(rec) for _, rec in _marker_recordings(scene, role) if rec.seen.any()]
-    if not d:
-        raise ValueError(f"the scene has no '{role}' recording with seen markers")
-    d = np.concatenate(d)
-    return float(100.0 * np.sqrt(np.mean(d**2)) / scene.object_size)
+    return _motions(scene, _marker_recordings(scene, role), role)[0]
 
 
 def _decide(fs: list, rms: list, motion: float) -> tuple[int, bool]:
@@ -112,18 +123,16 @@ def stress_scale_check(scene, model_of, role: str = "train", factors=SCALE_GRID)
     if fs[0] <= 0 or fs[0] > 0.5 or fs[-1] < 2.0:
         raise ValueError(f"stress scale factors must be positive with one <= 0.5 and one >= 2, got {list(factors)}")
     recs = _marker_recordings(scene, role)
+    motion, motions = _motions(scene, recs, role)
     runs = [_replay_rms(scene, model_of(f), role, len(recs)) for f in fs]
     rms = [r[0] for r in runs]
     if not np.isfinite(rms[fs.index(1.0)]):
         raise RuntimeError(f"the model cannot replay the {role} recordings")
-    motion = motion_rms(scene, role)
     i, determined = _decide(fs, rms, motion)
     best, low = fs[i], rms[i]
     per = []
-    for k, (name, rec) in enumerate(recs):
+    for k, ((name, _), m_k) in enumerate(zip(recs, motions)):
         r_k = [run[1][k] for run in runs]
-        d = _displacements(rec)
-        m_k = float(100.0 * np.sqrt(np.mean(d**2)) / scene.object_size) if d.size else 0.0
         j, det = _decide(fs, r_k, m_k)
         per.append({"file": name, "rms_error_pct": r_k, "motion_rms_pct": m_k, "best_factor": fs[j],
                     "determined": det})
