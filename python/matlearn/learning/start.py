@@ -215,10 +215,10 @@ def model_meta(info: dict) -> dict:
     meta = {"base_material": info["material"], "base_damping": info["damping"]}
     if "material_homogeneous" in info:
         meta["base_material_homogeneous"] = info["material_homogeneous"]
+    if "material_mesh" in info:  # a field, or a "best" run naming a transfer model: the mesh it is for
         meta["base_material_mesh"] = info["material_mesh"]
     if info.get("transfer_start"):  # "best" kept a field or a free stress scale: the model for other meshes
         meta["transfer_model"] = start_folder(info["transfer_start"])
-        meta["base_material_mesh"] = info["material_mesh"]
     return meta
 
 
