@@ -72,11 +72,10 @@ def run(args) -> int:
     save_model(out, params, mlp, meta={"scene": summary["scene"], "best_iteration": res["best_iteration"],
                                        "start": args.start, **model_meta(start)})
     # does the stress level follow from the recordings? (a slowly driven object's does not;
-    # a best-start run has checked its kept model already)
-    from ..learning.identify import check_learned
+    # learn_from has checked the kept model)
     from ..learning.io import add_meta
 
-    check = start.get("stress_scale") or check_learned(res["scene"], params)
+    check = start["stress_scale"]
     summary["stress_scale"] = check
     add_meta(out, stress_scale_determined=check["determined"], stress_scale_message=check["message"])
     if not check["determined"] or check["best_factor"] != 1.0:  # free, or the model off the data's scale

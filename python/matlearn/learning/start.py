@@ -343,11 +343,14 @@ def learn_from(scene, start: str, run_dir, options=None, warm: dict | None = Non
     """Learn from the start `start` (one of MODES: "nominal", "baseline", "field" (the baseline
     fit with a per-element stiffness field, :func:`field_start`), or "best" for the first two,
     :func:`learn_best_start`; laws: those the baseline start fits). Returns (the scene learned on, start info, learn result, run folder
-    of the kept model)."""
+    of the kept model); the info's stress_scale is identify.check_learned of the kept model."""
     if start == "best":
         return learn_best_start(scene, run_dir, options, warm=warm, max_evaluations=max_evaluations,
                                 resume=resume, log=log, laws=laws)
+    from .identify import check_learned
     from .loop import learn
 
     sc, info = start_scene(scene, start, run_dir, warm=warm, max_evaluations=max_evaluations, log=log, laws=laws)
-    return sc, info, learn(sc, run_dir, options, resume=resume, log=log), Path(run_dir)
+    res = learn(sc, run_dir, options, resume=resume, log=log)
+    # on the scene the loop learned on (cloud-only recordings replaced by their tracked markers)
+    return sc, {**info, "stress_scale": check_learned(res["scene"], res["params"])}, res, Path(run_dir)
