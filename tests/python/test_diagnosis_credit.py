@@ -15,7 +15,7 @@ def _stub(monkeypatch, b, obs):
     T = len(obs) // 3
     rec = SimpleNamespace(seen=np.ones((T, 1), bool), markers=np.zeros((T, 1, 3)))
     prob = SimpleNamespace(train=[rec], object_size=1.0, disc_bias={id(rec): b},
-                           disc_weight_range=(0.55, 4.0 / 3.0))
+                           disc_weight_range=(0.55, 4.0 / 3.0), prefetch=lambda models, recs=None: None)
     monkeypatch.setattr(fitting, "build_model", lambda ctx, params: params)
     monkeypatch.setattr(fitting, "predict",
                         lambda problem, model, rec, fast=True: (obs + model.get("shift", 0.0)).reshape(T, 1, 3))
@@ -48,8 +48,9 @@ def test_sensitivities_return_the_raw_jacobian_from_the_same_simulations(monkeyp
     obs = -1.0 * b + 0.1 * rng.standard_normal(12)
     prob = _stub(monkeypatch, b, obs)
     calls = []
-    monkeypatch.setattr(fitting, "build_model",
-                        lambda ctx, params: calls.append(1) or {"shift": params["stiffness_scale"][0] * b})
+    monkeypatch.setattr(fitting, "build_model", lambda ctx, params: {"shift": params["stiffness_scale"][0] * b})
+    stub_predict = fitting.predict
+    monkeypatch.setattr(fitting, "predict", lambda *a, **k: calls.append(1) or stub_predict(*a, **k))
     r0, raw0 = fitting.residual_pair(prob, None, {"stiffness_scale": [0.0]})
     n = len(calls)
     J, J_raw = fitting.sensitivities(prob, None, r0, ["stiffness_scale"], raw0=raw0)

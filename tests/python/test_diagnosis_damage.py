@@ -75,7 +75,7 @@ def _world(monkeypatch, kinds_amps, law, seed=0):
     monkeypatch.setattr(history, "_rec_residual", rec_residual)
     monkeypatch.setattr(history, "_damage_residual", damage_residual)
     monkeypatch.setattr(history.replay, "simulation_times", lambda scene, rec: rec.times)
-    problem = SimpleNamespace(train=recs, scene=None)
+    problem = SimpleNamespace(train=recs, scene=None, parallel=lambda tasks: [task() for task in tasks])
     ctx = SimpleNamespace(omega=OMEGA, d_ref=D_REF)
     floor = SIGMA**2 * 3 * len(T) * len(recs) * 1.2
     r0 = np.concatenate([rec_residual(problem, ctx, {}, 0.0, (0.0, 0.0), r) for r in recs])

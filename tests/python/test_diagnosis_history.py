@@ -49,7 +49,7 @@ def _world(monkeypatch, truths, seed=0):
         return np.stack([r, np.zeros_like(r), np.zeros_like(r)], axis=1).ravel()
 
     monkeypatch.setattr(history, "_rec_residual", rec_residual)
-    problem = SimpleNamespace(train=recs)
+    problem = SimpleNamespace(train=recs, parallel=lambda tasks: [task() for task in tasks])
     ctx = SimpleNamespace(omega=OMEGA)
     # linearised sensitivities of the stateless families at the nominal model
     r0 = np.concatenate([rec_residual(problem, ctx, {}, 0.0, (0.0, 0.0), r) for r in recs])

@@ -154,13 +154,13 @@ def sensitivities(problem, ctx, r0, names, step=0.1, progress=None, raw0=None):
     (not debiased) residual; when given, returns ({family: J}, {family: J of the raw residual})
     from the same simulations (residual_pair)."""
     out, out_raw = {}, {}
+    steps = {name: step * np.eye(len(FAMILIES[name].parameters)) for name in names}
+    problem.prefetch([build_model(ctx, {name: th}) for name in names for th in steps[name]])
     for name in names:
         k = len(FAMILIES[name].parameters)
         J = np.zeros((len(r0), k))
         Jr = np.zeros((len(r0), k))
-        for i in range(k):
-            th = np.zeros(k)
-            th[i] = step
+        for i, th in enumerate(steps[name]):
             r, raw = residual_pair(problem, ctx, {name: th})
             J[:, i] = (r - r0) / step
             if raw0 is not None:
@@ -209,9 +209,9 @@ def refine(problem, ctx, names: list, theta0: dict, r_start=None, iterations=3, 
     mu = 1e-3
     for it in range(iterations):
         J = np.zeros((len(r), len(x)))
-        for i in range(len(x)):
-            xp = x.copy()
-            xp[i] += step
+        steps = [x + step * e for e in np.eye(len(x))]
+        problem.prefetch([build_model(ctx, unpack(xp)) for xp in steps], recs)
+        for i, xp in enumerate(steps):
             J[:, i] = (res(unpack(xp)) - r) / step
             evals += 1
         JTJ, g = J.T @ J, J.T @ r
@@ -247,7 +247,9 @@ def scan(problem, ctx, name: str, theta_cheap, r0, grid=(-2.4, -1.2, -0.6, -0.3,
     multimodal, so a large true change is not reached by local steps from a small one.
     r0: the residual at theta = 0; target, recs: as in `refine`."""
     best = (float(r0 @ r0), np.zeros(1))
-    for t in [float(np.asarray(theta_cheap).ravel()[0])] + list(grid):
+    ts = [float(np.asarray(theta_cheap).ravel()[0])] + list(grid)
+    problem.prefetch([build_model(ctx, {name: [t]}) for t in ts], recs)
+    for t in ts:
         r = residual_of(problem, ctx, {name: [t]}, recs)
         if target is not None:
             r = r - target

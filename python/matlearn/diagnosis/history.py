@@ -133,7 +133,7 @@ def _segments(problem, models, bounds, rec):
         else:
             integ.set_state(*state)
             X, V = integ.simulate(b - a, zero, 1)
-        problem.simulations += 1
+        problem.count()
         Xs.append(X if a == 0 else X[1:])
         state = (np.asarray(X[-1]), np.asarray(V[-1]))
     X = np.concatenate(Xs)
@@ -189,10 +189,12 @@ def _projector(basis, per_recording):
     return proj
 
 
-def _lm(fun, x, free, K, iterations=2, step=0.07, stop=-1.0):
+def _lm(fun, x, free, K, iterations=2, step=0.07, stop=-1.0, parallel=None):
     """Gauss-Newton (Levenberg-damped, step-limited) over the entries `free` of x for
     fun(x, only, base) -> per-recording residuals (entries 1..K-1 of x touch only their own
-    recording); stops early once the rss is <= `stop`. Returns (x, per-recording residuals, rss)."""
+    recording); stops early once the rss is <= `stop`. `parallel`: runs a list of callables
+    (Problem.parallel), here the Jacobian's columns. Returns (x, per-recording residuals, rss)."""
+    parallel = parallel or (lambda tasks: [task() for task in tasks])
     parts = fun(x, None, None)
     cost = float(sum(p @ p for p in parts))
     for _ in range(iterations):
@@ -200,11 +202,14 @@ def _lm(fun, x, free, K, iterations=2, step=0.07, stop=-1.0):
             break
         r = np.concatenate(parts)
         J = np.zeros((len(r), len(free)))
-        for j, i in enumerate(free):
+
+        def column(i, parts=parts):
             xp = x.copy()
             xp[i] += step
-            only = [i] if 0 < i < K else None
-            J[:, j] = (np.concatenate(fun(xp, only, parts)) - r) / step
+            return np.concatenate(fun(xp, [i] if 0 < i < K else None, parts))
+
+        for j, col in enumerate(parallel([lambda i=i: column(i) for i in free])):
+            J[:, j] = (col - r) / step
         JTJ, g = J.T @ J, J.T @ r
         improved = False
         for mu in (1e-3, 1e-1, 1e1):  # Levenberg damping raised when a step fails
@@ -231,7 +236,7 @@ def _gauss_newton(problem, ctx, params, recs, x, free, iterations=2, step=0.07, 
     def fun(x, only, base):
         return proj(_residual(problem, ctx, params, x, recs, only, base))
 
-    return _lm(fun, x, free, len(recs), iterations, step)
+    return _lm(fun, x, free, len(recs), iterations, step, parallel=problem.parallel)
 
 
 def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, stop=-1.0, proj=None):
@@ -266,8 +271,8 @@ def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, st
     for t0 in starts:
         x = np.concatenate([np.zeros(K + 2), t0])
         x[0] = x_ref[0]
-        x = _lm(fun_of(0.4), x, free, K, iterations)[0]
-        best = min(best, _lm(fun_of(1.0), x, free, K, iterations, stop=stop)[2])
+        x = _lm(fun_of(0.4), x, free, K, iterations, parallel=problem.parallel)[0]
+        best = min(best, _lm(fun_of(1.0), x, free, K, iterations, stop=stop, parallel=problem.parallel)[2])
         if best <= stop:
             break
     return best
@@ -344,7 +349,7 @@ def _damage_fit(problem, ctx, params, recs, strains, s0, proj, iterations=4):
                 Ds = [final] * len(Ds) if stateless else Ds
                 parts.append(_damage_residual(problem, ctx, params, x[0], x[1], bounds, Ds, rec))
             return proj(parts)
-        x, _, cost = _lm(fun, np.array([s0, 0.0]), [0, 1], 1, iterations)
+        x, _, cost = _lm(fun, np.array([s0, 0.0]), [0, 1], 1, iterations, parallel=problem.parallel)
         out.append((cost, float(x[1])))
     return out[0], out[1]
 

@@ -98,7 +98,7 @@ def _recording_tangent(problem, model, rec, directions):
     X, dQ = runner.tangent(model, x0, v0, len(sim_t) - 1, np.zeros((n, 3)), dx0,
                            np.ascontiguousarray(directions, float),
                            np.asarray(emb.vertices, np.int64), np.asarray(emb.bary, float), targets=targets)
-    problem.simulations += 1
+    problem.count()
     Q = np.einsum("kj,tkjd->tkd", emb.bary, X[:, emb.vertices])
     P = replay.interpolate_frames(sim_t, Q, rec.times) + rest_offset(problem, rec)[None]
     dP = replay.interpolate_frames(sim_t, dQ, rec.times)

@@ -26,7 +26,7 @@ import numpy as np
 
 from . import contract, decay, fitting, history, ranking, region, simcache, where
 from .discretisation import discretisation
-from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContext, describe
+from .effects import CANDIDATES, FAMILIES, NUISANCE, WITH_NUISANCE, EffectContext, build_model, describe
 from .problem import Problem, marker_spectrum_peak
 from .selection import (ADD_FACTOR, DISSIPATIVE, EXPLAINED_MIN, GAP_FACTOR, NESTS, SURPRISE,
                         _add_nested_ties, _dof, _explained_excess, _forward_select, _linearisation_refuted,
@@ -160,6 +160,11 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     labels = fitting.make_patches(scene.mesh, patches, seed)
     Jp = np.zeros((len(r0), labels.max() + 1))
     Jp_raw = np.zeros_like(Jp)
+    models = []
+    for p in range(labels.max() + 1):  # simulated in parallel first (Problem.prefetch)
+        ctx.region = labels == p
+        models.append(build_model(ctx, {"heterogeneity": [0.1, 0.0]}))
+    P.prefetch(models)
     for p in range(labels.max() + 1):
         ctx.region = labels == p
         r_p, raw_p = fitting.residual_pair(P, ctx, {"heterogeneity": [0.1, 0.0]})

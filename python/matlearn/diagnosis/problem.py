@@ -4,6 +4,9 @@ any model (the objective every effect family is fitted against), plus the honest
 from __future__ import annotations
 
 import hashlib
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +16,14 @@ from ..embedding import embed_points
 from ..materials import Damping, Material
 from ..recording import Recording, load_recording
 from ..scene import Scene, load_scene, vertices_in_box
+
+# Independent simulations (a scan's models, a Jacobian's columns) run on up to SLOTS threads
+# (Problem.parallel; the C++ simulations release the GIL). Task i always runs on runner slot
+# i % SLOTS, each slot's tasks in order, whatever the machine's cores or the threads' timing:
+# each slot has its own LinearisedReplay, whose preconditioner history (and so every result,
+# to the last bit) then depends on the work alone. SLOTS is fixed for that reason; the
+# threads are min(SLOTS, cores).
+SLOTS = 2
 
 
 class Problem:
@@ -52,7 +63,9 @@ class Problem:
         self._emb = {}
         self.simulations = 0
         self.reuse_factor = reuse_factor
-        self._replays = {}  # (id(scene), driven vertices) -> (scene, LinearisedReplay)
+        self._replays = {}  # (id(scene), driven vertices, slot) -> (scene, LinearisedReplay)
+        self._local = threading.local()  # the runner slot of a `parallel` task (0 outside)
+        self._count_lock = threading.Lock()
         self._probe = {}  # id(scene) -> (scene, x, v): the fingerprint state
         self._memo = {}  # (id(scene), id(rec), newton, fingerprint) -> (rec, scene, markers)
         self.memo_hits = 0
@@ -84,6 +97,64 @@ class Problem:
         if key not in self._emb:
             self._emb[key] = embed_points(self.scene.mesh, rec.marker_rest)
         return self._emb[key]
+
+    def count(self, simulations: int = 1) -> None:
+        """Count simulations run (from any thread)."""
+        with self._count_lock:
+            self.simulations += simulations
+
+    def parallel(self, tasks) -> list:
+        """[task() for task in tasks], the tasks (callables that simulate with this problem)
+        run on up to SLOTS threads: task i on runner slot i % SLOTS, each slot's tasks in
+        order, so the results do not depend on the cores or the threads' timing (SLOTS). A task
+        that raises stops its slot's later tasks and the exception reaches the caller. Inside a
+        task (nested) the tasks run in order on the task's own slot."""
+        tasks = list(tasks)
+        if len(tasks) < 2 or getattr(self._local, "inside", False):
+            return [task() for task in tasks]
+        out = [None] * len(tasks)
+
+        def run(slot):
+            self._local.slot, self._local.inside = slot, True
+            try:
+                for i in range(slot, len(tasks), SLOTS):
+                    out[i] = tasks[i]()
+            finally:
+                self._local.slot, self._local.inside = 0, False
+
+        if min(SLOTS, os.cpu_count() or 1) < 2:
+            for slot in range(SLOTS):
+                run(slot)
+        else:
+            with ThreadPoolExecutor(SLOTS, thread_name_prefix="matlearn-sim") as pool:
+                list(pool.map(run, range(SLOTS)))
+        return out
+
+    def prefetch(self, models, recs=None, fast: bool = True) -> None:
+        """Predict every (model, recording of `recs`, default train) pair in parallel
+        (`parallel`), so that the caller's own predict() calls, in its own order, find them
+        memoised. Only a speed-up: a simulation that fails is left for the caller's call to
+        meet (and report) itself."""
+        recs = self.train if recs is None else recs
+        newton = self.fast_newton if fast else 8
+        for rec in recs:  # the per-recording state every task reads, made here once
+            self.embedding(rec)
+            if self.estimate_velocity == "auto":
+                self.start_velocity(rec)
+        if len(models):
+            self.fingerprint(models[0])  # its probe state
+
+        def task(model, rec):
+            def run():
+                if (id(self.scene), id(rec), newton, self.fingerprint(model)) in self._memo:
+                    return
+                try:
+                    self.predict(model, rec, fast)
+                except (RuntimeError, ValueError):
+                    pass
+            return run
+
+        self.parallel([task(m, rec) for m in models for rec in recs])
 
     def fingerprint(self, model) -> bytes:
         """Identity of a model on this scene: its forces at a fixed random state (deformed and
@@ -144,7 +215,7 @@ class Problem:
         key = self.store.key(self.scene, rec, *parts)
         got = self.store.get(key)
         if got is not None:
-            self.simulations += simulations
+            self.count(simulations)
             return got
         out = compute()
         self.store.put(key, *out)
@@ -157,7 +228,7 @@ class Problem:
             sim = self._linearised(model, rec, state)
         else:
             sim = replay.simulate_recording(self.scene, model, rec, state=state, max_newton=newton)
-        self.simulations += 1
+        self.count()
         return replay.predict_markers(self.scene, model, rec, sim=sim, embedding=self.embedding(rec)), sim
 
     def nominal_omega(self) -> float | None:
@@ -202,12 +273,12 @@ class Problem:
     def replay_runner(self, model, driven=()):
         """The scene's LinearisedReplay for the driven vertices `driven` (a recording's drive
         points, replay.drive_schedule; none by default), created on first use with `model`'s mesh
-        and kept (one per set of driven vertices)."""
+        and kept (one per set of driven vertices and runner slot: `parallel`)."""
         from .. import _core
 
         scene = self.scene
         driven = np.asarray(driven, np.int64)
-        key = (id(scene), driven.tobytes())
+        key = (id(scene), driven.tobytes(), getattr(self._local, "slot", 0))
         if key not in self._replays:
             self._replays[key] = (scene, _core.time.LinearisedReplay(
                 model, scene.fixed, scene.time_step, np.asarray(scene.gravity, float),
@@ -452,15 +523,20 @@ def start_in_motion(problem, rec: Recording, frames: int | None = None, scales=S
         return scene.model(material=Material(mat.model, np.asarray(mat.youngs_modulus, float) * s,
                                              mat.poisson_ratio, mat.density, list(mat.edits)))
 
+    def simulated(s, v):  # the markers at scale s from (x0, v); None where the simulation fails
+        model = model_at(s)
+        try:
+            return problem.remembered(
+                rec, ("start", problem.fast_newton, problem.fingerprint(model), x0, v),
+                lambda: (problem.simulate_markers(model, rec, (x0, v), problem.fast_newton)[0],))[0]
+        except RuntimeError:
+            return None
+
     def scan(v):
         best = (np.inf, None, None)
-        for s in scales:
-            model = model_at(s)
-            try:
-                pred = problem.remembered(
-                    rec, ("start", problem.fast_newton, problem.fingerprint(model), x0, v),
-                    lambda: (problem.simulate_markers(model, rec, (x0, v), problem.fast_newton)[0],))[0]
-            except RuntimeError:
+        preds = problem.parallel([lambda s=s: simulated(s, v) for s in scales])
+        for s, pred in zip(scales, preds):
+            if pred is None:
                 continue
             r = ((pred - rec.markers)[seen] / size).ravel()
             c = float(r @ r) if np.all(np.isfinite(r)) else np.inf

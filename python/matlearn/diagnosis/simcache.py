@@ -28,6 +28,7 @@ import hashlib
 import json
 import os
 import shutil
+import threading
 from functools import lru_cache
 from pathlib import Path
 
@@ -137,7 +138,7 @@ class SimulationStore:
         return out
 
     def put(self, key: str, *arrays: np.ndarray) -> None:
-        tmp = self.folder / f".{key}.{os.getpid()}.tmp.npz"
+        tmp = self.folder / f".{key}.{os.getpid()}.{threading.get_ident()}.tmp.npz"
         np.savez(tmp, *[np.asarray(a) for a in arrays])
         os.replace(tmp, self.folder / f"{key}.npz")
 
