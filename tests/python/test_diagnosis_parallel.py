@@ -2,6 +2,7 @@
 order, each task on its fixed runner slot, bit-identical whatever the number of cores, equal to
 the serial simulations to the replay's solver tolerance, failures left to the caller."""
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -46,6 +47,26 @@ def test_tasks_run_in_order_on_their_slots(scene):
         assert [i for i, _ in mine] == sorted(i for i, _ in mine)
         assert len({name for _, name in mine}) == 1
     assert getattr(P._local, "slot", 0) == 0  # the caller's own slot is untouched
+
+
+def test_a_failing_task_stops_every_slot(scene):
+    P = Problem(scene)
+    ran, failed = [], threading.Event()
+
+    def fail():
+        failed.set()
+        raise RuntimeError("step 3: linear solve produced NaN (diverged)")
+
+    def slow():  # running beside the failure on the other slot
+        failed.wait(5.0)
+        time.sleep(0.2)
+        ran.append(1)
+
+    tasks = [fail, slow] + [lambda i=i: ran.append(i) for i in range(2, 8)]
+    with pytest.raises(RuntimeError, match="diverged"):
+        P.parallel(tasks)
+    assert 2 not in ran and 3 not in ran  # neither slot went on after the failure
+    assert P.parallel([lambda: 1, lambda: 2]) == [1, 2]  # and the problem is usable after it
 
 
 def test_nested_tasks_run_on_the_outer_task_slot(scene):

@@ -107,27 +107,41 @@ class Problem:
         """[task() for task in tasks], the tasks (callables that simulate with this problem)
         run on up to SLOTS threads: task i on runner slot i % SLOTS, each slot's tasks in
         order, so the results do not depend on the cores or the threads' timing (SLOTS). A task
-        that raises stops its slot's later tasks and the exception reaches the caller. Inside a
-        task (nested) the tasks run in order on the task's own slot."""
+        that raises (or an interrupt of the caller) stops every slot after its current task,
+        and the exception reaches the caller. Inside a task (nested) the tasks run in order on
+        the task's own slot."""
         tasks = list(tasks)
         if len(tasks) < 2 or getattr(self._local, "inside", False):
             return [task() for task in tasks]
         out = [None] * len(tasks)
+        stop = threading.Event()
 
         def run(slot):
             self._local.slot, self._local.inside = slot, True
             try:
                 for i in range(slot, len(tasks), SLOTS):
+                    if stop.is_set():
+                        return
                     out[i] = tasks[i]()
+            except BaseException:
+                stop.set()
+                raise
             finally:
                 self._local.slot, self._local.inside = 0, False
 
         if min(SLOTS, os.cpu_count() or 1) < 2:
             for slot in range(SLOTS):
                 run(slot)
-        else:
-            with ThreadPoolExecutor(SLOTS, thread_name_prefix="matlearn-sim") as pool:
-                list(pool.map(run, range(SLOTS)))
+            return out
+        pool = ThreadPoolExecutor(SLOTS, thread_name_prefix="matlearn-sim")
+        try:
+            for job in [pool.submit(run, slot) for slot in range(SLOTS)]:
+                job.result()
+        except BaseException:  # Ctrl-C lands here, in the caller's thread
+            stop.set()
+            raise
+        finally:
+            pool.shutdown(wait=True)
         return out
 
     def prefetch(self, models, recs=None, fast: bool = True) -> None:
