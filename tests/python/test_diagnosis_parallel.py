@@ -87,7 +87,8 @@ def test_prefetched_predictions_do_not_depend_on_the_cores(scene, monkeypatch):
     a = [threaded.predict(m, rec) for m in models for rec in threaded.train]
     assert threaded.simulations == len(models) * len(threaded.train)  # every call found its result
 
-    monkeypatch.setattr(problem_module.os, "cpu_count", lambda: 1)  # the serial fallback
+    monkeypatch.setenv("MATLEARN_THREADS", "1")  # the serial fallback
+    assert problem_module.threads() == 1
     single = Problem(scene)
     single.prefetch(_models(single))
     b = [single.predict(m, rec) for m in _models(single) for rec in single.train]
@@ -101,6 +102,16 @@ def test_prefetched_predictions_do_not_depend_on_the_cores(scene, monkeypatch):
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-9 * serial.object_size)
     # the models differ: a prefetch that returned one model's markers for all would fail here
     assert np.abs(a[0] - a[-1]).max() > 1e-4 * serial.object_size
+
+
+def test_the_thread_count_can_be_set_and_a_bad_one_is_named(monkeypatch):
+    monkeypatch.setenv("MATLEARN_THREADS", "8")
+    assert problem_module.threads() == SLOTS  # never more threads than runner slots
+    monkeypatch.setenv("MATLEARN_THREADS", "0")
+    assert problem_module.threads() == 1
+    monkeypatch.setenv("MATLEARN_THREADS", "two")
+    with pytest.raises(ValueError, match="MATLEARN_THREADS"):
+        problem_module.threads()
 
 
 def test_a_failed_prefetch_is_met_by_the_callers_own_call(scene, monkeypatch):
