@@ -124,18 +124,6 @@ def _add_nested_ties(rows, forced):
 # measured on the once-refined mesh, underestimates volumetric locking, which converges slower
 # than h^2: the tiny control bar 2 tets across needs a ratio 0.23 lower against 0.04 for the
 # refined mesh's pattern, so at face value it would win there).
-
-
-# A family fitted together with the discretisation offset (effects.WITH_NUISANCE) whose change
-# acts on the stiffness everywhere contains a uniform stiffness scale inside the offset's range:
-# the Poisson ratio with its offset is nested over the stiffness scale (a uniform scale is
-# E / rho, so a density change is exactly such a scale, and a ratio fitted with its offset can
-# absorb part of it: named density sphere, Poisson 6.12e-3 vs the scale's 6.26e-3, noise 5.5e-3).
-# Only a Poisson ratio that already leads the ranking (it beat the scale by CREDIT_FACTOR x its
-# credit) is re-examined: the comparison can take the lead from it, never give it one (its credit,
-# measured on the once-refined mesh, underestimates volumetric locking, which converges slower
-# than h^2: the tiny control bar 2 tets across needs a ratio 0.23 lower against 0.04 for the
-# refined mesh's pattern, so at face value it would win there).
 OFFSET_NESTS = {"poisson_ratio": "stiffness_scale"}
 # larger families whose extra parameters are only an amplitude dependence (alpha_K growing with the
 # strain over Rayleigh damping): unless the evidence prefers the larger one, the data are as
