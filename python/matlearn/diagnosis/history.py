@@ -104,38 +104,49 @@ def _simulate_split(problem, m1, m2, rec):
 
 def _simulate_segments(problem, models, bounds, rec):
     """Markers at rec.times of one recording simulated with models[i] over the simulation steps
-    bounds[i] .. bounds[i + 1] (the state carried across), from the first model's initial state
-    (kept in the problem's store: Problem.remembered)."""
-    parts = ("segments", problem.fast_newton, tuple(problem.fingerprint(m) for m in models),
-             tuple(int(b) for b in bounds))
+    bounds[i] .. bounds[i + 1] (the state carried across), from the first model's start state
+    (Problem.start_state, as every prediction starts; kept in the problem's store:
+    Problem.remembered)."""
+    parts = ("segments", problem.fast_newton, problem.estimate_velocity,
+             tuple(problem.fingerprint(m) for m in models), tuple(int(b) for b in bounds))
     runs = sum(1 for a, b in zip(bounds[:-1], bounds[1:]) if b > a)
     return problem.remembered(rec, parts, lambda: (_segments(problem, models, bounds, rec),), runs)[0]
 
 
 def _segments(problem, models, bounds, rec):
+    """The simulation of _simulate_segments: with one Newton iteration per step through the
+    problem's linearised replay (Problem.linearised_setup, as every fast prediction: drive
+    points prescribed, the factor reused), else the scene's integrator."""
     scene = problem.scene
     emb = problem.embedding(rec)
     sim_t = replay.simulation_times(scene, rec)
-    x0, v0 = replay.initial_state(scene, models[0], rec, emb)
-    didx, dtar = replay.drive_vertices(scene, rec)
-    Xs = []
-    state = (np.asarray(x0), np.asarray(v0))
+    x, v = (np.asarray(a, float) for a in problem.start_state(models[0], rec))
     zero = np.zeros((scene.mesh.num_vertices, 3))
+    linearised = problem.fast_newton == 1 and problem.reuse_factor
+    if linearised:
+        runner, _, x, targets = problem.linearised_setup(models[0], rec, x)
+    else:
+        didx, dtar = replay.drive_vertices(scene, rec)
+    Xs = []
     for model, a, b in zip(models, bounds[:-1], bounds[1:]):
         if b <= a:
             continue
-        integ = scene.integrator(model, max_newton=problem.fast_newton)
-        if len(didx):
-            integ.set_prescribed(didx)
-            integ.set_state(*state)
-            targets = replay.interpolate_frames(rec.times, dtar, sim_t[a + 1: b + 1])
-            X, V = integ.simulate_constrained(targets, zero)
+        if linearised:
+            X, V = runner.simulate(model, x, v, b - a, zero,
+                                   targets=None if targets is None else np.ascontiguousarray(targets[a:b]))
         else:
-            integ.set_state(*state)
-            X, V = integ.simulate(b - a, zero, 1)
+            integ = scene.integrator(model, max_newton=problem.fast_newton)
+            if len(didx):
+                integ.set_prescribed(didx)
+                integ.set_state(x, v)
+                X, V = integ.simulate_constrained(replay.interpolate_frames(rec.times, dtar, sim_t[a + 1: b + 1]),
+                                                  zero)
+            else:
+                integ.set_state(x, v)
+                X, V = integ.simulate(b - a, zero, 1)
         problem.count()
         Xs.append(X if a == 0 else X[1:])
-        state = (np.asarray(X[-1]), np.asarray(V[-1]))
+        x, v = np.asarray(X[-1]), np.asarray(V[-1])
     X = np.concatenate(Xs)
     return replay.interpolate_frames(sim_t, emb.apply(X), rec.times)
 

@@ -218,9 +218,9 @@ class Problem:
         self._memo[memo_key] = (rec, self.scene, P.copy())
         return P
 
-    def _simulate_prediction(self, model, rec, newton: int):
-        """(markers, (sim_t, X, V)) of `rec` from its start state (held pose; the start velocity
-        as decided by `estimate_velocity`)."""
+    def start_state(self, model, rec):
+        """(x0, v0) that `rec` is simulated from with `model`: its held first pose, and the start
+        velocity as decided by `estimate_velocity` (zero where it starts at rest)."""
         state = replay.initial_state(self.scene, model, rec, self.embedding(rec))
         if self.estimate_velocity is True and not rec.at_rest_initially and not rec.has_drive:
             state = (state[0], initial_velocity(self.scene, model, rec, self.embedding(rec), state[0]))
@@ -229,7 +229,11 @@ class Problem:
             if mv is not None:
                 state = (state[0], initial_velocity(self.scene, model, rec, self.embedding(rec), state[0],
                                                     marker_v=mv))
-        return self.simulate_markers(model, rec, state, newton)
+        return state
+
+    def _simulate_prediction(self, model, rec, newton: int):
+        """(markers, (sim_t, X, V)) of `rec` from its start state (start_state)."""
+        return self.simulate_markers(model, rec, self.start_state(model, rec), newton)
 
     def remembered(self, rec, parts: tuple, compute, simulations: int = 1):
         """compute() (a tuple of arrays: the result of simulating `rec`), or the same tuple from
