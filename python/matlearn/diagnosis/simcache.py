@@ -101,6 +101,7 @@ class SimulationStore:
         # computed twice within one run is recomputed, round-off and all), and only writes
         self.reading = bool(resume)
         self.hits = 0
+        self._hits_lock = threading.Lock()  # get() runs in Problem.parallel's threads
         self._digests = {}  # id(obj) -> (obj, digest): scenes and recordings, hashed once
         manifest = self.folder / "manifest.json"
         if self.folder.exists() and not (resume and _code_of(manifest) == code_digest()):
@@ -134,7 +135,8 @@ class SimulationStore:
                 out = tuple(z[f"arr_{i}"] for i in range(len(z.files)))
         except (OSError, ValueError, KeyError):  # unreadable: simulate again
             return None
-        self.hits += 1
+        with self._hits_lock:
+            self.hits += 1
         return out
 
     def put(self, key: str, *arrays: np.ndarray) -> None:
