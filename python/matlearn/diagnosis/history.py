@@ -200,12 +200,11 @@ def _projector(basis, per_recording):
     return proj
 
 
-def _lm(fun, x, free, K, iterations=2, step=0.07, stop=-1.0, parallel=None):
+def _lm(fun, x, free, K, parallel, iterations=2, step=0.07, stop=-1.0):
     """Gauss-Newton (Levenberg-damped, step-limited) over the entries `free` of x for
     fun(x, only, base) -> per-recording residuals (entries 1..K-1 of x touch only their own
-    recording); stops early once the rss is <= `stop`. `parallel`: runs a list of callables
-    (Problem.parallel), here the Jacobian's columns. Returns (x, per-recording residuals, rss)."""
-    parallel = parallel or (lambda tasks: [task() for task in tasks])
+    recording); stops early once the rss is <= `stop`. `parallel` (Problem.parallel) runs the
+    Jacobian's columns. Returns (x, per-recording residuals, rss)."""
     parts = fun(x, None, None)
     cost = float(sum(p @ p for p in parts))
     for _ in range(iterations):
@@ -247,7 +246,7 @@ def _gauss_newton(problem, ctx, params, recs, x, free, iterations=2, step=0.07, 
     def fun(x, only, base):
         return proj(_residual(problem, ctx, params, x, recs, only, base))
 
-    return _lm(fun, x, free, len(recs), iterations, step, parallel=problem.parallel)
+    return _lm(fun, x, free, len(recs), problem.parallel, iterations, step)
 
 
 def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, stop=-1.0, proj=None):
@@ -282,8 +281,8 @@ def _stateless(problem, ctx, params, x_ref, recs, name, theta0, iterations=3, st
     for t0 in starts:
         x = np.concatenate([np.zeros(K + 2), t0])
         x[0] = x_ref[0]
-        x = _lm(fun_of(0.4), x, free, K, iterations, parallel=problem.parallel)[0]
-        best = min(best, _lm(fun_of(1.0), x, free, K, iterations, stop=stop, parallel=problem.parallel)[2])
+        x = _lm(fun_of(0.4), x, free, K, problem.parallel, iterations)[0]
+        best = min(best, _lm(fun_of(1.0), x, free, K, problem.parallel, iterations, stop=stop)[2])
         if best <= stop:
             break
     return best
@@ -360,7 +359,7 @@ def _damage_fit(problem, ctx, params, recs, strains, s0, proj, iterations=4):
                 Ds = [final] * len(Ds) if stateless else Ds
                 parts.append(_damage_residual(problem, ctx, params, x[0], x[1], bounds, Ds, rec))
             return proj(parts)
-        x, _, cost = _lm(fun, np.array([s0, 0.0]), [0, 1], 1, iterations, parallel=problem.parallel)
+        x, _, cost = _lm(fun, np.array([s0, 0.0]), [0, 1], 1, problem.parallel, iterations)
         out.append((cost, float(x[1])))
     return out[0], out[1]
 

@@ -169,8 +169,6 @@ class Problem:
             self.embedding(rec)
             if self.estimate_velocity == "auto":
                 self.start_velocity(rec)
-        if len(models):
-            self.fingerprint(models[0])  # its probe state
 
         def task(model, rec):
             def run():
