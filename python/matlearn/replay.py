@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .embedding import Embedding, embed_points
+from .parallel import pmap
 from .recording import Recording
 
 
@@ -358,8 +359,11 @@ def score(scene, model=None, role: str = "test", progress=None, start: str = SCO
     the initial state `start` (:func:`initial_state`; default SCORE_START, the protocol every
     model is scored with) and return {"recordings": [per-recording error dict], **pooled error}."""
     model = model if model is not None else scene.model()
-    per = [score_recording(scene, model, rec, start, progress)
-           for rec in scene.recordings_with_role(role) if rec.num_markers > 0]
+    recs = [rec for rec in scene.recordings_with_role(role) if rec.num_markers > 0]
+    if progress is None:  # the recordings on the cores (matlearn.parallel; the same result)
+        per = pmap(lambda rec: score_recording(scene, model, rec, start), recs)
+    else:  # one progress display, one recording at a time
+        per = [score_recording(scene, model, rec, start, progress) for rec in recs]
     if not per:
         raise ValueError(f"score: the scene has no '{role}' recording with markers")
     return {"recordings": per, **combine_errors(per)}

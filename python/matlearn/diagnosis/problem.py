@@ -4,7 +4,6 @@ any model (the objective every effect family is fitted against), plus the honest
 from __future__ import annotations
 
 import hashlib
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -14,6 +13,7 @@ import numpy as np
 from .. import meshes, replay
 from ..embedding import embed_points
 from ..materials import Damping, Material
+from ..parallel import threads as _threads
 from ..recording import Recording, load_recording
 from ..scene import Scene, load_scene, vertices_in_box
 
@@ -22,23 +22,15 @@ from ..scene import Scene, load_scene, vertices_in_box
 # i % SLOTS, each slot's tasks in order, whatever the machine's cores or the threads' timing:
 # each slot has its own LinearisedReplay, whose preconditioner history (and so every result,
 # to the last bit) then depends on the work alone. SLOTS is fixed for that reason; the
-# threads are min(SLOTS, the cores this process may use), or MATLEARN_THREADS (1: one thread,
-# e.g. on a machine shared with other jobs; the results are the same).
+# threads are min(SLOTS, matlearn.parallel.threads()): the cores this process may use, or
+# MATLEARN_THREADS (1: one thread, e.g. on a machine shared with other jobs; the results are the same).
 SLOTS = 2
 
 
 def threads() -> int:
-    """How many threads Problem.parallel uses: MATLEARN_THREADS if set (at least 1), else the
-    cores this process may run on, at most SLOTS."""
-    env = os.environ.get("MATLEARN_THREADS", "").strip()
-    if env:
-        try:
-            n = int(env)
-        except ValueError:
-            raise ValueError(f"MATLEARN_THREADS must be a whole number of threads, got {env!r}") from None
-    else:
-        n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(SLOTS, n))
+    """How many threads Problem.parallel uses: matlearn.parallel.threads() (MATLEARN_THREADS if
+    set, else the cores this process may run on), at most SLOTS."""
+    return min(SLOTS, _threads())
 
 
 class Problem:

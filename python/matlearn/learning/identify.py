@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..parallel import pmap
+
 SCALE_GRID = (0.25, 0.5, 2.0, 4.0)
 DETERMINED_RATIO = 2.0
 VISIBLE = 0.1
@@ -124,7 +126,8 @@ def stress_scale_check(scene, model_of, role: str = "train", factors=SCALE_GRID)
         raise ValueError(f"stress scale factors must be positive with one <= 0.5 and one >= 2, got {list(factors)}")
     recs = _marker_recordings(scene, role)
     motion, motions = _motions(scene, recs, role)
-    runs = [_replay_rms(scene, model_of(f), role, len(recs)) for f in fs]
+    # the factors' replays on the cores (matlearn.parallel; the same result)
+    runs = pmap(lambda f: _replay_rms(scene, model_of(f), role, len(recs)), fs)
     rms = [r[0] for r in runs]
     if not np.isfinite(rms[fs.index(1.0)]):
         raise RuntimeError(f"the model cannot replay the {role} recordings")

@@ -49,6 +49,7 @@ import numpy as np
 from ..clouds.prepare import cloud_lambda, motion_scales, track_scene
 from ..clouds.tracking import refresh_markers
 from ..embedding import embed_points
+from ..parallel import check_cancelled, pmap
 from ..recording import load_recording
 from ..replay import SCORE_START, initial_state, interpolate_frames, simulate_recording, simulation_times
 from .fit import (FitFrames, RbfParams, extension_probes, fit_system, project_linear_part,
@@ -127,6 +128,9 @@ def _simulate_bounded(scene, model, rec, emb, bound, done_steps, total_steps, st
     Ys, t_done = [], [-np.inf]
 
     def check(s, X):
+        # an earlier recording (on the other thread) exceeded the bound, or the caller was
+        # interrupted: this result is not used (never a rejection: Cancelled passes every handler)
+        check_cancelled()
         Ys.append(emb.apply(X))
         t_now = sim_t[s] if s < steps else np.inf
         sel = (rec.times > t_done[0]) & (rec.times <= t_now)
@@ -150,22 +154,24 @@ def _errors(scene, model, recs, embs, bound=np.inf, start="held", states=None):
     need: a candidate that cannot beat the bound is rejected without simulating the rest).
     start: the initial-state estimator (robust_initial_state); states: given initial states
     (x0, v0) per recording instead (None: estimated with `model`)."""
-    out, sims = [], []
     size = scene.object_size
-    total = sum(len(simulation_times(scene, r)) - 1 for r in recs)
-    done = 0
-    for i, (rec, emb) in enumerate(zip(recs, embs)):
+    steps = [len(simulation_times(scene, r)) - 1 for r in recs]
+    total = sum(steps)
+
+    def one(i):  # the recordings run on the cores (matlearn.parallel.pmap)
+        rec, emb = recs[i], embs[i]
         state = states[i] if states is not None else robust_initial_state(scene, model, rec, emb, start)
         if np.isfinite(bound):
-            sim = _simulate_bounded(scene, model, rec, emb, bound, done, total, state)
-            done += len(sim[0]) - 1
+            # the steps before this recording's: a serial check reaches it only when every earlier
+            # recording was simulated whole, so its ErrorBoundExceeded is the serial one
+            sim = _simulate_bounded(scene, model, rec, emb, bound, sum(steps[:i]), total, state)
         else:
             sim = simulate_recording(scene, model, rec, state=state)
         P = interpolate_frames(sim[0], emb.apply(sim[1]), rec.times)
-        seen = rec.seen
-        out.append(100.0 * np.linalg.norm(P - rec.markers, axis=2)[seen] / size)
-        sims.append(sim)
-    return out, sims
+        return 100.0 * np.linalg.norm(P - rec.markers, axis=2)[rec.seen] / size, sim
+
+    res = pmap(one, range(len(recs)))
+    return [r[0] for r in res], [r[1] for r in res]
 
 
 def _summary(errs):
