@@ -30,6 +30,8 @@ import scipy.linalg as sl
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
+from .parallel import pmap
+
 MODE_COUNTS = (6, 12, 24, 48)
 REFINE_MODES = 12
 WINDOW_DIVISOR = 8.0
@@ -162,12 +164,14 @@ def refine_in_window(window: _Window, x0: np.ndarray, Phi: np.ndarray, dofs: np.
     only if it lowers the misfit (step 3 of the module docstring)."""
     n = len(x0)
     r0 = window.residual(x0)
-    J = np.empty((len(r0), Phi.shape[1]))
-    for j in range(Phi.shape[1]):
+
+    def column(j):  # the columns' released simulations run on the cores (parallel.pmap)
         eps = 1e-4 * size / max(np.abs(Phi[:, j]).max(), 1e-300)
         xj = x0.copy().ravel()
         xj[dofs] += eps * Phi[:, j]
-        J[:, j] = (window.residual(xj.reshape(n, 3)) - r0) / eps
+        return (window.residual(xj.reshape(n, 3)) - r0) / eps
+
+    J = np.stack(pmap(column, range(Phi.shape[1])), axis=1)
     A = J.T @ J
     dc = -np.linalg.solve(A + 1e-8 * np.trace(A) / len(A) * np.eye(len(A)), J.T @ r0)
     x1 = x0.copy().ravel()
@@ -176,10 +180,11 @@ def refine_in_window(window: _Window, x0: np.ndarray, Phi: np.ndarray, dofs: np.
     return x1 if window.rms(x1) < np.sqrt(np.mean(r0**2)) else x0
 
 
-def released_start(scene, model, rec, emb, x_held: np.ndarray, integ=None,
+def released_start(scene, model, rec, emb, x_held: np.ndarray,
                    mode_counts=MODE_COUNTS, refine_modes: int = REFINE_MODES) -> np.ndarray:
     """The released start x0 (n, 3) of `rec` (velocity zero) from its held pose `x_held`; see the
-    module docstring. `integ`: an integrator of the scene with `model` (made if None)."""
+    module docstring. The candidates and the refinement's Jacobian columns are independent
+    simulations and run on the cores (matlearn.parallel; the same result on one thread)."""
     x_held = np.asarray(x_held, float)
     didx, dtargets, dofs = _free_dofs(scene, rec)
     if len(dofs) == 0:
@@ -187,18 +192,19 @@ def released_start(scene, model, rec, emb, x_held: np.ndarray, integ=None,
     rmax = int(min(max(max(mode_counts, default=0), refine_modes), len(dofs)))
     lam, Phi = vibration_modes(model, x_held, dofs, rmax)
     window = _Window(scene, model, rec, emb, window_frames(scene, rec, lam[0]))
-    integ = scene.integrator(model) if integ is None else integ
-    integ.set_prescribed(didx if len(didx) else np.zeros(0, np.int64))
-    best, best_rms = x_held, window.rms(x_held)
-    for r in sorted({int(min(r, len(dofs))) for r in mode_counts}):
+    def candidate(r):  # its own integrator (each static solve starts afresh: the same poses)
+        integ = scene.integrator(model)
+        integ.set_prescribed(didx if len(didx) else np.zeros(0, np.int64))
         try:
             x = smooth_hold(scene, model, rec, emb, x_held, lam[:r], Phi[:, :r], dofs, integ)
         except RuntimeError:
-            continue
-        e = window.rms(x)
-        if e < best_rms:
-            best, best_rms = x, e
-    integ.set_prescribed(np.zeros(0, np.int64))
+            return None
+        return x, window.rms(x)
+
+    best, best_rms = x_held, window.rms(x_held)
+    for got in pmap(candidate, sorted({int(min(r, len(dofs))) for r in mode_counts})):
+        if got is not None and got[1] < best_rms:
+            best, best_rms = got
     if refine_modes > 0 and np.isfinite(best_rms):
         try:
             best = refine_in_window(window, best, Phi[:, :refine_modes], dofs, scene.object_size)

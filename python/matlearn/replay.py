@@ -204,7 +204,7 @@ def initial_state(scene, model, rec: Recording, embedding: Embedding | None = No
     if start == "released":
         from .release import released_start
 
-        return released_start(scene, model, rec, emb, x0, integ), np.zeros((n, 3))
+        return released_start(scene, model, rec, emb, x0), np.zeros((n, 3))
     if velocity == "zero" or rec.num_frames < 2:
         return x0, np.zeros((n, 3))
     x1 = _held_pose(scene, model, rec, 1, emb, integ, refine)

@@ -163,3 +163,15 @@ def test_a_bounded_forward_check_stops_as_the_serial_one(two_recordings, monkeyp
     for x, y, z in zip(a, b, errs):
         np.testing.assert_array_equal(x, y)
         np.testing.assert_array_equal(x, z)
+
+
+def test_the_released_start_does_not_depend_on_the_threads(two_recordings, monkeypatch):
+    from matlearn.replay import initial_state
+
+    sc = two_recordings
+    rec = sc.recordings_with_role("train")[1]
+    emb = embed_points(sc.mesh, rec.marker_rest)
+    a, b = _both(monkeypatch, lambda: initial_state(sc, sc.model(), rec, emb, start="released")[0])
+    np.testing.assert_array_equal(a, b)
+    held = initial_state(sc, sc.model(), rec, emb)[0]  # its candidates and refinement moved the pose
+    assert np.abs(a - held).max() > 1e-6 * sc.object_size
