@@ -1,6 +1,8 @@
 """Benchmark: the learning's independent simulations on the cores (matlearn.parallel).
 
 For learning-table cases (matlearn.cases), in one process and the same run:
+* the released start of every recording (`replay.initial_state(start="released")`: its
+  candidate holds and its refinement's Jacobian columns side by side),
 * `score` of the train and test recordings (the loop's forward checks and every held-out
   score run the recordings side by side),
 * the Wang-2015 baseline fit (`fit_parameters`, its finite-difference columns side by side),
@@ -28,10 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from matlearn import cases, parallel
+from matlearn.embedding import embed_points
 from matlearn.learning import fit as fit_mod
 from matlearn.learning.baseline import fit_parameters
 from matlearn.learning.identify import stress_scale_check, with_stress_factor
-from matlearn.replay import score
+from matlearn.replay import initial_state, score
 from matlearn.scene import load_scene
 
 RESULTS = Path(__file__).parent / "results" / "learning_parallel.json"
@@ -84,7 +87,10 @@ def run_case(name: str, work: Path, cores: str) -> dict:
     row = {"case": name, "tets": scene.mesh.num_tets,
            "train_recordings": len(scene.recordings_with_role("train")),
            "test_recordings": len(scene.recordings_with_role("test"))}
+    recs = scene.recordings_with_role("train") + scene.recordings_with_role("test")
     tasks = {
+        "released_starts": lambda: [initial_state(scene, scene.model(), r, embed_points(scene.mesh, r.marker_rest),
+                                                  start="released")[0] for r in recs],
         "score_train": lambda: score(scene, scene.model(), "train"),
         "score_test": lambda: score(scene, scene.model(), "test"),
         "baseline_fit_10": lambda: fit_parameters(scene, max_evaluations=10),

@@ -175,3 +175,28 @@ def test_the_released_start_does_not_depend_on_the_threads(two_recordings, monke
     np.testing.assert_array_equal(a, b)
     held = initial_state(sc, sc.model(), rec, emb)[0]  # its candidates and refinement moved the pose
     assert np.abs(a - held).max() > 1e-6 * sc.object_size
+
+
+def _timeless(x):
+    """x without its wall-clock entries (keys with "wall")."""
+    if isinstance(x, dict):
+        return {k: _timeless(v) for k, v in x.items() if "wall" not in k}
+    if isinstance(x, list):
+        return [_timeless(v) for v in x]
+    return x
+
+
+def test_a_learning_iteration_does_not_depend_on_the_threads(two_recordings, tmp_path, monkeypatch):
+    """Two train recordings: their space-time problems, forward checks and scores run side by
+    side; the learned correction and every metric are bitwise the one-thread run's."""
+    from matlearn.learning import LearnOptions, learn
+
+    opts = LearnOptions(iterations=2, modes=10, centers=8)
+    runs = iter(("two", "one"))
+    a, b = _both(monkeypatch, lambda: learn(two_recordings, tmp_path / next(runs), opts, log=None))
+    assert _timeless(a["metrics"]) == _timeless(b["metrics"])
+    st = a["metrics"][0]["spacetime"]
+    assert len(st) == 2 and st[0]["cost"] != st[1]["cost"]  # both recordings, each its own problem
+    assert a["final"]["train"]["max_error_pct"] < a["nominal"]["train"]["max_error_pct"]  # it learned
+    for x, y in zip(a["params"].to_arrays().values(), b["params"].to_arrays().values()):
+        np.testing.assert_array_equal(x, y)

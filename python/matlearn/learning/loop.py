@@ -308,10 +308,12 @@ class Learner:
         self.log(f"observation weight lambda = {self.lam:.3g} (from the scanner noise and the motion)")
 
     def _spacetime(self, model, sims, st_X, k):
-        """Space-time for every train recording; returns (fit frames, new st_X, info)."""
-        frames, new_X, info = [], [], []
+        """Space-time for every train recording; returns (fit frames, new st_X, info). The
+        recordings' problems are independent and are solved side by side (matlearn.parallel)."""
         V = np.asarray(self.scene.mesh.vertices, float)
-        for i, (rec, emb, sim) in enumerate(zip(self.train, self.emb_train, sims)):
+
+        def one(i):
+            rec, emb, sim = self.train[i], self.emb_train[i], sims[i]
             t0 = time.time()
             if st_X is None:
                 _, X0, _ = initial_trajectory(self.scene, model, rec, emb)
@@ -342,18 +344,19 @@ class Learner:
             fc = out["control_forces"]
             red = fc.reshape(len(fc), -1) @ phi
             stride = max(1, int(np.ceil(len(fc) / self.opt.fit_frames)))
-            frames.append(FitFrames(out["X"][2::stride], out["V"][2::stride], fc[::stride], phi))
-            new_X.append(out["X"])
             P = interpolate_frames(setup.times, emb.apply(out["X"]), rec.times)
             fit_err = np.linalg.norm(P - rec.markers, axis=2)[rec.seen]
-            info.append({"cost": out["report"]["cost"], "cg_iterations": out["report"]["cg_iterations"],
-                         "marker_max_error_pct": float(100.0 * fit_err.max() / self.scene.object_size)
-                         if fit_err.size else 0.0,
-                         "step_length": out["report"]["step_length"],
-                         "control_force_rms": float(np.sqrt(np.mean(red**2))), "modes": int(phi.shape[1]),
-                         "frames": int(len(out["X"])), "wall_s": time.time() - t0,
-                         "refresh_costs": rounds})
-        return frames, new_X, info
+            return (FitFrames(out["X"][2::stride], out["V"][2::stride], fc[::stride], phi), out["X"],
+                    {"cost": out["report"]["cost"], "cg_iterations": out["report"]["cg_iterations"],
+                     "marker_max_error_pct": float(100.0 * fit_err.max() / self.scene.object_size)
+                     if fit_err.size else 0.0,
+                     "step_length": out["report"]["step_length"],
+                     "control_force_rms": float(np.sqrt(np.mean(red**2))), "modes": int(phi.shape[1]),
+                     "frames": int(len(out["X"])), "wall_s": time.time() - t0,
+                     "refresh_costs": rounds})
+
+        got = pmap(one, range(len(self.train)))
+        return [g[0] for g in got], [g[1] for g in got], [g[2] for g in got]
 
     def _train_error(self, params, bound=np.inf):
         """(max train error %, errors, sims) of a correction; inf when it cannot be simulated.
