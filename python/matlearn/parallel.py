@@ -14,15 +14,17 @@ parallel on Python threads. Two helpers:
 
 A task that raises stops the later tasks (in item order) not yet started, and the exception of
 the *first* failing task in item order reaches the caller, as in the serial loop (later tasks
-that already ran are discarded; a running one may poll :func:`cancelled` to stop early). A Ctrl-C in the caller stops the tasks not yet started, waits for the running ones
-(one simulation each) and is re-raised. Inside a task, pmap runs serially on that thread (no
-nested pools, no oversubscription).
+that already ran are discarded; a running one may poll :func:`cancelled` to stop early). A
+Ctrl-C in the caller stops the tasks not yet started, waits for the running ones (one
+simulation each) and is re-raised. Inside a task, pmap runs serially on that thread (no nested
+pools, no oversubscription); other pools mark their threads the same way (:func:`task_thread`).
 """
 from __future__ import annotations
 
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 MAX_THREADS = 2  # this project's machines; more threads would only add memory
 
@@ -48,6 +50,18 @@ def inside_task() -> bool:
     return getattr(_local, "inside", False)
 
 
+@contextmanager
+def task_thread():
+    """Run the body as a task of another pool (diagnosis.problem.Problem.parallel): pmap calls
+    inside it run serially on this thread."""
+    was = inside_task()
+    _local.inside = True
+    try:
+        yield
+    finally:
+        _local.inside = was
+
+
 class Cancelled(Exception):
     """Raised by :func:`check_cancelled` in a task whose result can no longer be used."""
 
@@ -64,8 +78,8 @@ def cancelled() -> bool:
 
 
 def check_cancelled() -> None:
-    """Raise Cancelled inside a pmap task whose result can no longer be used (:func:`cancelled`):
-    the checkpoints of a long task (a learning loop's iterations) call it."""
+    """Raise Cancelled inside a pmap task whose result can no longer be used (:func:`cancelled`),
+    e.g. between the chunks of a bounded forward check (learning/loop.py)."""
     if cancelled():
         raise Cancelled("stopped: an earlier task failed or the run was interrupted")
 

@@ -130,3 +130,19 @@ def test_a_failed_prefetch_is_met_by_the_callers_own_call(scene, monkeypatch):
     P.predict(models[0], P.train[0])
     with pytest.raises(RuntimeError, match="diverged"):
         P.predict(models[1], P.train[0])
+
+
+def test_pmap_inside_a_problem_task_runs_on_the_tasks_own_thread(scene, monkeypatch):
+    """The learning's pmap called from a diagnosis task does not start a pool of its own."""
+    from matlearn import parallel
+
+    monkeypatch.setenv("MATLEARN_THREADS", "2")
+    P = Problem(scene)
+
+    def task():
+        me = threading.current_thread().name
+        return parallel.pmap(lambda x: threading.current_thread().name, range(3)) == [me] * 3 != [
+            threading.main_thread().name] * 3
+
+    assert P.parallel([task] * 4) == [True] * 4
+    assert not parallel.inside_task()  # the mark is the task's only

@@ -13,7 +13,7 @@ import numpy as np
 from .. import meshes, replay
 from ..embedding import embed_points
 from ..materials import Damping, Material
-from ..parallel import threads as _threads
+from ..parallel import task_thread, threads as _threads
 from ..recording import Recording, load_recording
 from ..scene import Scene, load_scene, vertices_in_box
 
@@ -126,10 +126,11 @@ class Problem:
         def run(slot):
             self._local.slot, self._local.inside = slot, True
             try:
-                for i in range(slot, len(tasks), SLOTS):
-                    if stop.is_set():
-                        return
-                    out[i] = tasks[i]()
+                with task_thread():  # matlearn.parallel.pmap calls inside a task run serially
+                    for i in range(slot, len(tasks), SLOTS):
+                        if stop.is_set():
+                            return
+                        out[i] = tasks[i]()
             except BaseException:
                 stop.set()
                 raise

@@ -307,8 +307,8 @@ class FitSystem:
     def _gradient_gram(self, points) -> np.ndarray:
         """(c, c) mean over `points` of grad g_k . grad g_l."""
         G = kernel_gradients(points, self.centers, self.epsilon, self.box)
-        # one BLAS product (c, 3k) x (3k, c): ~15x faster than the equivalent einsum, whose
-        # unoptimised loops took 13 % of a learning run (bench/learning_table.py, dragon)
+        # one BLAS product (c, 3k) x (3k, c): 17-37x faster than the equivalent einsum, whose
+        # unoptimised loops took 11 % of the dragon's learning-table run (bench/learning_parallel.py)
         H = G.transpose(1, 0, 2).reshape(len(self.centers), -1)
         return (H @ H.T) / len(points)
 
