@@ -17,14 +17,13 @@ the *first* failing task in item order reaches the caller, as in the serial loop
 that already ran are discarded; a running one may poll :func:`cancelled` to stop early). A
 Ctrl-C in the caller stops the tasks not yet started, waits for the running ones (one
 simulation each) and is re-raised. Inside a task, pmap runs serially on that thread (no nested
-pools, no oversubscription); other pools mark their threads the same way (:func:`task_thread`).
+pools, no oversubscription).
 """
 from __future__ import annotations
 
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 
 MAX_THREADS = 2  # this project's machines; more threads would only add memory
 
@@ -46,20 +45,8 @@ def threads() -> int:
 
 
 def inside_task() -> bool:
-    """True on a thread that is running a pmap task (nested calls run serially there)."""
-    return getattr(_local, "inside", False)
-
-
-@contextmanager
-def task_thread():
-    """Run the body as a task of another pool (diagnosis.problem.Problem.parallel): pmap calls
-    inside it run serially on this thread."""
-    was = inside_task()
-    _local.inside = True
-    try:
-        yield
-    finally:
-        _local.inside = was
+    """True while a pmap task runs on this thread (nested calls run serially there)."""
+    return getattr(_local, "state", None) is not None
 
 
 class Cancelled(Exception):
@@ -88,8 +75,7 @@ def pmap(fn, items) -> list:
     """[fn(x) for x in items], on up to threads() threads (module docstring: order, failures,
     Ctrl-C, nesting). Usable as scipy's ``workers`` map."""
     items = list(items)
-    n = min(threads(), len(items))
-    if n < 2 or inside_task():
+    if inside_task():
         return [fn(x) for x in items]
     stop = threading.Event()
     failed = [len(items)]  # the lowest index whose task raised; later tasks are not started
@@ -98,7 +84,7 @@ def pmap(fn, items) -> list:
     def run(i):
         if stop.is_set() or i > failed[0]:
             return None
-        _local.inside, _local.state = True, (stop, failed, i)
+        _local.state = (stop, failed, i)
         try:
             return fn(items[i])
         except BaseException:
@@ -106,8 +92,11 @@ def pmap(fn, items) -> list:
                 failed[0] = min(failed[0], i)
             raise
         finally:
-            _local.inside, _local.state = False, None
+            _local.state = None
 
+    n = min(threads(), len(items))
+    if n < 2:  # in the caller's thread, each item a task all the same (nesting, cancellation)
+        return [run(i) for i in range(len(items))]
     pool = ThreadPoolExecutor(n, thread_name_prefix="matlearn")
     try:
         jobs = [pool.submit(run, i) for i in range(len(items))]

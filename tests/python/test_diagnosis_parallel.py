@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from matlearn.diagnosis import problem as problem_module
+from matlearn import parallel
 from matlearn.diagnosis.effects import EffectContext, build_model
 from matlearn.diagnosis.problem import SLOTS, Problem
 
@@ -69,7 +69,9 @@ def test_a_failing_task_stops_every_slot(scene):
     assert P.parallel([lambda: 1, lambda: 2]) == [1, 2]  # and the problem is usable after it
 
 
-def test_nested_tasks_run_on_the_outer_task_slot(scene):
+@pytest.mark.parametrize("threads", ["1", "2"])  # one thread runs both slots in turn, the same way
+def test_nested_tasks_run_on_the_outer_task_slot(scene, monkeypatch, threads):
+    monkeypatch.setenv("MATLEARN_THREADS", threads)
     P = Problem(scene)
 
     def outer(i):
@@ -88,7 +90,7 @@ def test_prefetched_predictions_do_not_depend_on_the_cores(scene, monkeypatch):
     assert threaded.simulations == len(models) * len(threaded.train)  # every call found its result
 
     monkeypatch.setenv("MATLEARN_THREADS", "1")  # the serial fallback
-    assert problem_module.threads() == 1
+    assert parallel.threads() == 1
     single = Problem(scene)
     single.prefetch(_models(single))
     b = [single.predict(m, rec) for m in _models(single) for rec in single.train]
@@ -106,12 +108,12 @@ def test_prefetched_predictions_do_not_depend_on_the_cores(scene, monkeypatch):
 
 def test_the_thread_count_can_be_set_and_a_bad_one_is_named(monkeypatch):
     monkeypatch.setenv("MATLEARN_THREADS", "8")
-    assert problem_module.threads() == SLOTS  # never more threads than runner slots
+    assert parallel.threads() == parallel.MAX_THREADS == SLOTS  # never more threads than runner slots
     monkeypatch.setenv("MATLEARN_THREADS", "0")
-    assert problem_module.threads() == 1
+    assert parallel.threads() == 1
     monkeypatch.setenv("MATLEARN_THREADS", "two")
     with pytest.raises(ValueError, match="MATLEARN_THREADS"):
-        problem_module.threads()
+        parallel.threads()
 
 
 def test_a_failed_prefetch_is_met_by_the_callers_own_call(scene, monkeypatch):
@@ -134,8 +136,6 @@ def test_a_failed_prefetch_is_met_by_the_callers_own_call(scene, monkeypatch):
 
 def test_pmap_inside_a_problem_task_runs_on_the_tasks_own_thread(scene, monkeypatch):
     """The learning's pmap called from a diagnosis task does not start a pool of its own."""
-    from matlearn import parallel
-
     monkeypatch.setenv("MATLEARN_THREADS", "2")
     P = Problem(scene)
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,7 @@ import numpy as np
 from .. import meshes, replay
 from ..embedding import embed_points
 from ..materials import Damping, Material
-from ..parallel import task_thread, threads as _threads
+from ..parallel import cancelled, inside_task, pmap
 from ..recording import Recording, load_recording
 from ..scene import Scene, load_scene, vertices_in_box
 
@@ -21,16 +20,10 @@ from ..scene import Scene, load_scene, vertices_in_box
 # (Problem.parallel; the C++ simulations release the GIL). Task i always runs on runner slot
 # i % SLOTS, each slot's tasks in order, whatever the machine's cores or the threads' timing:
 # each slot has its own LinearisedReplay, whose preconditioner history (and so every result,
-# to the last bit) then depends on the work alone. SLOTS is fixed for that reason; the
-# threads are min(SLOTS, matlearn.parallel.threads()): the cores this process may use, or
-# MATLEARN_THREADS (1: one thread, e.g. on a machine shared with other jobs; the results are the same).
+# to the last bit) then depends on the work alone. SLOTS is fixed for that reason; the slots
+# run through matlearn.parallel.pmap, one per thread, on min(SLOTS, parallel.threads()) threads
+# (MATLEARN_THREADS=1: both slots in turn, e.g. on a machine shared with other jobs; the same results).
 SLOTS = 2
-
-
-def threads() -> int:
-    """How many threads Problem.parallel uses: matlearn.parallel.threads() (MATLEARN_THREADS if
-    set, else the cores this process may run on), at most SLOTS."""
-    return min(SLOTS, _threads())
 
 
 class Problem:
@@ -118,38 +111,25 @@ class Problem:
         and the exception reaches the caller. Inside a task (nested) the tasks run in order on
         the task's own slot."""
         tasks = list(tasks)
-        if len(tasks) < 2 or getattr(self._local, "inside", False):
+        if len(tasks) < 2 or inside_task():
             return [task() for task in tasks]
         out = [None] * len(tasks)
-        stop = threading.Event()
+        stop = threading.Event()  # a failure in either slot stops both
 
         def run(slot):
-            self._local.slot, self._local.inside = slot, True
+            self._local.slot = slot
             try:
-                with task_thread():  # matlearn.parallel.pmap calls inside a task run serially
-                    for i in range(slot, len(tasks), SLOTS):
-                        if stop.is_set():
-                            return
-                        out[i] = tasks[i]()
+                for i in range(slot, len(tasks), SLOTS):
+                    if stop.is_set() or cancelled():  # cancelled: the caller was interrupted
+                        return
+                    out[i] = tasks[i]()
             except BaseException:
                 stop.set()
                 raise
             finally:
-                self._local.slot, self._local.inside = 0, False
+                self._local.slot = 0
 
-        if threads() < 2:
-            for slot in range(SLOTS):
-                run(slot)
-            return out
-        pool = ThreadPoolExecutor(SLOTS, thread_name_prefix="matlearn-sim")
-        try:
-            for job in [pool.submit(run, slot) for slot in range(SLOTS)]:
-                job.result()
-        except BaseException:  # Ctrl-C lands here, in the caller's thread
-            stop.set()
-            raise
-        finally:
-            pool.shutdown(wait=True)
+        pmap(run, range(SLOTS))  # one slot per thread (both in turn with MATLEARN_THREADS=1)
         return out
 
     def prefetch(self, models, recs=None, fast: bool = True) -> None:
