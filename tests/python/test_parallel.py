@@ -146,9 +146,8 @@ def test_a_bounded_forward_check_stops_as_the_serial_one(two_recordings, monkeyp
     whole = [float(e.max()) for e in errs]
     assert whole[1] > whole[0]  # the case tests a stop in the second recording (below)
     total = sum(len(loop.simulation_times(sc, r)) - 1 for r in recs)
-    # both recordings exceed it; only the second (if it is the larger), after the first whole
-    bounds = [0.5 * min(whole)] + ([0.5 * (whole[0] + whole[1])] if whole[1] > whole[0] else [])
-    for bound in bounds:
+    # both recordings exceed the first bound; only the second exceeds the other, after the first whole
+    for bound in (0.5 * whole[0], 0.5 * (whole[0] + whole[1])):
         def check():
             with pytest.raises(loop.ErrorBoundExceeded) as info:
                 loop._errors(sc, model, recs, embs, bound=bound)
