@@ -192,6 +192,7 @@ def released_start(scene, model, rec, emb, x_held: np.ndarray,
     rmax = int(min(max(max(mode_counts, default=0), refine_modes), len(dofs)))
     lam, Phi = vibration_modes(model, x_held, dofs, rmax)
     window = _Window(scene, model, rec, emb, window_frames(scene, rec, lam[0]))
+
     def candidate(r):  # its own integrator (each static solve starts afresh: the same poses)
         integ = scene.integrator(model)
         integ.set_prescribed(didx if len(didx) else np.zeros(0, np.int64))
