@@ -1,18 +1,21 @@
-"""`matlearn diagnose` on a scene whose recordings are point clouds only (formats.md allows them):
-the clouds are tracked first, as `matlearn learn` does, instead of stopping with "diagnosis needs
-at least one 'train' recording with markers"."""
+"""`matlearn diagnose` (the CLI and the Python API) on a scene whose recordings are point clouds only
+(formats.md allows them): the clouds are tracked first, as `matlearn learn` does, instead of
+stopping with "diagnosis needs at least one 'train' recording with markers"."""
 from __future__ import annotations
 
 import numpy as np
 
 from matlearn import _core, meshes
-from matlearn.commands.diagnose import scene_with_markers
+import pytest
+
+from matlearn.diagnosis import pipeline
+from matlearn.diagnosis.pipeline import scene_with_markers
 from matlearn.materials import Damping, Material, make_model
 from matlearn.recording import Recording, load_recording, save_recording
 from matlearn.scene import Scene, load_scene, save_scene
 
 
-def test_cloud_only_scene_is_tracked_into_markers(tmp_path):
+def _cloud_scene(tmp_path):
     mesh = meshes.bar(0.1, 0.02, 0.02, (5, 1, 1))
     V = np.asarray(mesh.vertices)
     mat = Material("corotated", 2e5, 0.4, 1000.0)
@@ -34,6 +37,11 @@ def test_cloud_only_scene_is_tracked_into_markers(tmp_path):
     save_recording(rec, tmp_path / "c.npz")
     scene = Scene(mesh, mat, Damping(0, 0.002), fixed, 1e-3, (0, -9.81, 0), [(tmp_path / "c.npz", "train")])
     path = save_scene(scene, tmp_path / "scene.toml")
+    return scene, path, rec, X, V
+
+
+def test_cloud_only_scene_is_tracked_into_markers(tmp_path):
+    scene, path, rec, X, V = _cloud_scene(tmp_path)
     assert scene_with_markers(path, tmp_path / "out") != path
     tracked = load_scene(tmp_path / "out" / "tracked" / "scene.toml")
     (p, role), = tracked.recordings
@@ -47,3 +55,28 @@ def test_cloud_only_scene_is_tracked_into_markers(tmp_path):
     # a scene with markers is diagnosed as it is
     assert scene_with_markers(tmp_path / "out" / "tracked" / "scene.toml", tmp_path / "out2") == \
         tmp_path / "out" / "tracked" / "scene.toml"
+
+    # a Scene object (the Python API) is tracked the same way, and one with markers kept as it is
+    assert scene_with_markers(scene, tmp_path / "out3") == tmp_path / "out3" / "tracked" / "scene.toml"
+    marked = load_scene(tmp_path / "out" / "tracked" / "scene.toml")
+    assert scene_with_markers(marked, tmp_path / "out4") is marked
+
+
+def test_python_diagnose_tracks_cloud_only_recordings(tmp_path, monkeypatch):
+    """diagnose() from Python diagnoses the tracked scene, as the CLI does (it had skipped
+    cloud-only recordings and stopped for want of a train recording with markers)."""
+    _, path, _, _, _ = _cloud_scene(tmp_path)
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def problem(scene, **kw):
+        seen.append(scene)
+        raise Stop
+
+    monkeypatch.setattr(pipeline, "Problem", problem)
+    with pytest.raises(Stop):
+        pipeline.diagnose(path, tmp_path / "diag", progress=lambda *a: None)
+    assert seen == [tmp_path / "diag" / "tracked" / "scene.toml"]
+    assert load_recording(load_scene(seen[0]).recordings[0][0]).num_markers > 0

@@ -30,25 +30,6 @@ def register(subparsers):
     p.set_defaults(func=_run)
 
 
-def scene_with_markers(scene_path, out_dir, log=None):
-    """The scene to diagnose: `scene_path` itself, or, when some of its recordings have point
-    clouds and no markers (formats.md allows cloud-only recordings; the diagnosis compares
-    markers), a copy written to out_dir/tracked/scene.toml whose cloud-only recordings are
-    replaced by the mesh tracked through their clouds, as `matlearn learn` does
-    (clouds.prepare.track_scene; cached there by fingerprint)."""
-    from pathlib import Path
-
-    from ..clouds.prepare import is_cloud_only, track_scene
-    from ..recording import load_recording
-    from ..scene import load_scene, save_scene
-
-    scene = load_scene(scene_path)
-    if not any(is_cloud_only(load_recording(p)) for p, _ in scene.recordings):
-        return Path(scene_path)
-    tracked, _ = track_scene(scene, Path(out_dir) / "tracked", log=log, progress=log is not None)
-    return save_scene(tracked, Path(out_dir) / "tracked" / "scene.toml")
-
-
 def check_out(out, resume: bool, force: bool) -> None:
     """Refuse an --out that holds a finished or an interrupted diagnosis unless told what to do
     with it (nothing a user produced is overwritten silently)."""
@@ -70,14 +51,10 @@ def check_out(out, resume: bool, force: bool) -> None:
 
 
 def _run(args):
-    import sys
-
     from ..diagnosis import diagnose
 
-    log = lambda *a: print(*a, file=sys.stderr, flush=True)  # noqa: E731
     check_out(args.out, args.resume, args.force)
-    scene = scene_with_markers(args.scene, args.out, log)
-    r = diagnose(scene, args.out, seed=args.seed, report=not args.no_report,
+    r = diagnose(args.scene, args.out, seed=args.seed, report=not args.no_report,
                  residual_source=args.residual, follow_damping=args.follow_damping or None,
                  resume=args.resume)
     print(f"verdict: {', '.join(r['verdict']) or '[] (within noise and discretisation)'}")

@@ -63,10 +63,29 @@ def dominant_omega(problem) -> float:
     return float(2 * np.pi * max(best[1], 1.0 / span))
 
 
+def scene_with_markers(scene, out_dir, log=None):
+    """The scene to diagnose: `scene` (a scene.toml path or a Scene) itself, or, when some of its
+    recordings have point clouds and no markers (formats.md allows cloud-only recordings; the
+    diagnosis compares markers), a copy written to out_dir/tracked/scene.toml whose cloud-only
+    recordings are replaced by the mesh tracked through their clouds, as `matlearn learn` does
+    (clouds.prepare.track_scene; cached there by fingerprint). `diagnose` calls it first, so the
+    CLI and the Python API diagnose the same recordings."""
+    from ..clouds.prepare import is_cloud_only, track_scene
+    from ..recording import load_recording
+    from ..scene import Scene, load_scene, save_scene
+
+    loaded = scene if isinstance(scene, Scene) else load_scene(scene)
+    if not any(is_cloud_only(load_recording(p)) for p, _ in loaded.recordings):
+        return scene if isinstance(scene, Scene) else Path(scene)
+    tracked, _ = track_scene(loaded, Path(out_dir) / "tracked", log=log, progress=log is not None)
+    return save_scene(tracked, Path(out_dir) / "tracked" / "scene.toml")
+
+
 def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 16,
              refine_top: int = 3, report: bool = True, residual_source: str = "constrained",
              follow_damping: bool | None = None, resume: bool = False) -> dict:
-    """Diagnose the scene's nominal model against its train recordings; write
+    """Diagnose the scene's nominal model (scene_path: a scene.toml or a Scene; cloud-only
+    recordings are tracked first, scene_with_markers) against its train recordings; write
     out_dir/diagnosis.json (formats.md), report.html and residual .vtu files; return the dict.
 
     residual_source: where the "where" control forces come from: "constrained" (a simulation
@@ -84,6 +103,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     np.random.seed(seed)
+    scene_path = scene_with_markers(scene_path, out, say)  # cloud-only recordings tracked first
     # a recording that does not say it starts at rest starts in motion only where its own data
     # show it (problem.start_in_motion), decided once here for every recording
     P = Problem(scene_path, estimate_velocity="auto" if START_DECISION else False)
