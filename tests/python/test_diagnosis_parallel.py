@@ -106,6 +106,21 @@ def test_prefetched_predictions_do_not_depend_on_the_cores(scene, monkeypatch):
     assert np.abs(a[0] - a[-1]).max() > 1e-4 * serial.object_size
 
 
+def test_prefetch_takes_each_models_solver_and_runs_extra_tasks(scene):
+    """The held-out stage prefetches full-Newton and fast predictions in one batch, with the
+    refined mesh's gap as an extra task (pipeline._prefetch_gaps)."""
+    P = Problem(scene)
+    models = _models(P, (0.0, 0.2))
+    assert P.prefetch(models, P.train, [False, True], extra=[lambda: "a", lambda: "b"]) == ["a", "b"]
+    n = P.simulations
+    assert n == 2 * len(P.train)
+    P.predict(models[0], P.train[0], fast=False)
+    P.predict(models[1], P.train[0], fast=True)
+    assert P.simulations == n  # each memoised with its own solver
+    P.predict(models[0], P.train[0], fast=True)
+    assert P.simulations == n + 1  # not with the other one
+
+
 def test_the_thread_count_can_be_set_and_a_bad_one_is_named(monkeypatch):
     monkeypatch.setenv("MATLEARN_THREADS", "8")
     assert parallel.threads() == parallel.MAX_THREADS == SLOTS  # never more threads than runner slots

@@ -411,6 +411,14 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     say(f"verdict {verdict}")
 
     # ---- how much: held-out gaps
+    cumulative_params = _cumulative_params(verdict, selected.params if selected else {})
+    alone = {}  # an effect not in the verdict: its own gap (its refined or its linearised fit)
+    for e in ranked:
+        if e["name"] not in cumulative_params:
+            fit = e["_fit"]
+            alone[e["name"]] = fit.params if fit else {e["name"]: _theta_of(e, selected, cheap)}
+    refined_gap = _prefetch_gaps(P, ctx, nominal, list(cumulative_params.values()), list(alone.values()),
+                                 hist["reference"] if hist is not None and hist["parameters"] else None)
     gap_before = _safe_gap(P, None, None, model=nominal)  # None: the nominal model fails there
     # the mesh's share of the gap: the nominal material with only the stiffness offset the
     # coarse mesh takes (no effect added), so a user sees how much a finer mesh would remove
@@ -419,15 +427,13 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
                    "refined_mesh_modal_factor": P.disc_modal_factor,
                    "factor_range": [float(np.exp(t)) for t in ctx.offset_range],
                    "gap_with_offset": _safe_gap(P, ctx, {}),
-                   "gap_refined_mesh": _refined_gap(P)}
+                   "gap_refined_mesh": refined_gap}
     if disc_report["gap_refined_mesh"] and gap_before:
         from .report import gap_label
 
         say(f"{gap_label(bool(P.test))} {gap_before['max_error_pct']:.2f} %; "
             f"the nominal material on the once-refined mesh {disc_report['gap_refined_mesh']['max_error_pct']:.2f} %")
-    cumulative = {}
-    for name, params in _cumulative_params(verdict, selected.params if selected else {}).items():
-        cumulative[name] = _safe_gap(P, ctx, params)
+    cumulative = {name: _safe_gap(P, ctx, params) for name, params in cumulative_params.items()}
     # the effects list is ranked best first (formats.md): the verdict's effects lead, in its order
     # (a pair chosen jointly, _pair_challenge, can rank below a single family it replaced)
     front = [r for v in verdict for r in ranked if r["name"] == v]
@@ -436,15 +442,13 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     for e in ranked:
         name = e["name"]
         fit = e["_fit"]
-        theta = selected.params[name] if (selected and name in selected.params) else (
-            fit.params[name] if fit else cheap[name][0])
         entry = {"name": name, "explained": e["explained"], "score": e["score"],
-                 "parameters": describe(name, theta, ctx), "simulated": fit is not None,
+                 "parameters": describe(name, _theta_of(e, selected, cheap), ctx), "simulated": fit is not None,
                  "discretisation_credit": float(credit.get(name, 0.0))}
         if name in cumulative:
             entry["gap_after"] = cumulative[name]
         else:  # not in the verdict: the effect alone (its refined or its linearised fit)
-            entry["gap_after"] = _safe_gap(P, ctx, fit.params if fit else {name: theta}, fast=True)
+            entry["gap_after"] = _safe_gap(P, ctx, alone[name], fast=True)
         if e["confounded_with"]:
             entry["confounded_with"] = e["confounded_with"]
         if "evidence" in e:  # explained measured on other evidence than the train markers
@@ -540,6 +544,39 @@ def _decay_claim(P, ctx, ev, verdict, selected, ranked, say):
     return new, fit, ev
 
 
+def _theta_of(e, selected, cheap):
+    """The parameters reported for the ranked family `e`: the verdict's joint fit, its own
+    simulated fit, or its linear (cheap) fit."""
+    name, fit = e["name"], e["_fit"]
+    if selected and name in selected.params:
+        return selected.params[name]
+    return fit.params[name] if fit else cheap[name][0]
+
+
+def _prefetch_gaps(P, ctx, nominal, cumulative, alone, history_reference):
+    """Simulate every held-out prediction the result reports, side by side (Problem.prefetch):
+    the nominal model's and the mesh offset's, the verdict's cumulative models (full Newton),
+    the other effects alone (fast) and the history check's stateless reference; the refined
+    mesh's gap (`_refined_gap`) runs in the same batch, and is returned. The gaps are then
+    taken, in the result's order, from the memoised predictions: the same numbers as one by
+    one. A model is simulated once however often it is reported (by fingerprint), so the
+    simulation count does not depend on the threads."""
+    wanted = [(nominal, False), (ctx, {}, False)] + [(ctx, p, False) for p in cumulative] + \
+        [(ctx, p, True) for p in alone] + ([(ctx, history_reference, False)] if history_reference else [])
+    models, fasts, seen = [], [], set()
+    for w in wanted:
+        try:
+            m = w[0] if len(w) == 2 else build_model(w[0], w[1])
+        except (RuntimeError, ValueError):  # _safe_gap meets and reports it
+            continue
+        key = (P.fingerprint(m), w[-1])
+        if key not in seen:
+            seen.add(key)
+            models.append(m)
+            fasts.append(w[-1])
+    return P.prefetch(models, P.test or P.train, fasts, extra=[lambda: _refined_gap(P)])[0]
+
+
 def _refined_gap(P):
     """Held-out gap of the nominal material on the once-refined mesh (each tet split into 8, the
     same clamp and starts): what a finer mesh alone does to the gap. The stiffness factor of
@@ -554,7 +591,7 @@ def _refined_gap(P):
         g = fitting.gap(fine, fine.scene.model())
     except (RuntimeError, ValueError):  # a failed or non-finite simulation
         g = None
-    P.simulations += fine.simulations
+    P.count(fine.simulations)
     return g
 
 

@@ -132,18 +132,21 @@ class Problem:
         pmap(run, range(SLOTS))  # one slot per thread (both in turn with MATLEARN_THREADS=1)
         return out
 
-    def prefetch(self, models, recs=None, fast: bool = True) -> None:
+    def prefetch(self, models, recs=None, fast=True, extra=()) -> list:
         """Predict every (model, recording of `recs`, default train) pair in parallel
         (`parallel`), so that the caller's own predict() calls, in its own order, find them
-        memoised. Only a speed-up: a simulation that fails is left for the caller's call to
+        memoised. `fast`: the solver of every model, or a list of one per model. `extra`:
+        further tasks (callables) run in the same batch after the predictions; their results
+        are returned. Only a speed-up: a simulation that fails is left for the caller's call to
         meet (and report) itself."""
         recs = self.train if recs is None else recs
+        fasts = [fast] * len(models) if isinstance(fast, bool) else list(fast)
         for rec in recs:  # the per-recording state every task reads, made here once
             self.embedding(rec)
             if self.estimate_velocity == "auto":
                 self.start_velocity(rec)
 
-        def task(model, rec):
+        def task(model, rec, fast):
             def run():
                 try:
                     self.predict(model, rec, fast)  # memoised; a pair already memoised is not simulated again
@@ -151,7 +154,8 @@ class Problem:
                     pass
             return run
 
-        self.parallel([task(m, rec) for m in models for rec in recs])
+        tasks = [task(m, rec, f) for m, f in zip(models, fasts) for rec in recs]
+        return self.parallel(tasks + list(extra))[len(tasks):]
 
     def fingerprint(self, model) -> bytes:
         """Identity of a model on this scene: its forces at a fixed random state (deformed and
