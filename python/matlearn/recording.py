@@ -15,6 +15,7 @@ A folder of per-frame `.ply`/`.pcd` clouds plus `times.txt` is read by :func:`lo
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -94,7 +95,7 @@ class Recording:
         if K == 0 and self.cloud_points is None:
             raise ValueError("a recording needs markers, point clouds, or both")
         self._validate_drive(T)
-        self.at_rest_initially = bool(self.at_rest_initially)
+        self.at_rest_initially = _flag(self.at_rest_initially, "at_rest_initially")
 
     def _validate_clouds(self, T: int) -> None:
         given = [k for k in ("cloud_points", "cloud_offsets") if getattr(self, k) is not None]
@@ -199,11 +200,29 @@ def save_recording(rec: Recording, path) -> Path:
     return path
 
 
+def _flag(value, key: str) -> bool:
+    """A boolean scalar (True/False, numpy bool, or the integers 0/1); anything else, e.g. the
+    string "False", which Python would read as True, raises a ValueError naming `key`."""
+    v = np.asarray(value)
+    if v.shape == () and (v.dtype.kind == "b" or (v.dtype.kind in "iu" and v.item() in (0, 1))):
+        return bool(v.item())
+    raise ValueError(f"{key}: expected a boolean scalar (True or False), got {value!r}")
+
+
 def load_recording(path) -> Recording:
-    """Read a recording `.npz`; raises FileNotFoundError / ValueError naming the file."""
+    """Read a recording: a `.npz` archive (formats.md), or a folder of per-frame `.ply`/`.pcd`
+    point clouds with a `times.txt` (`load_cloud_folder`, the cloud-only equivalent); raises
+    FileNotFoundError / ValueError naming the file."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"recording not found: {path}")
+    if path.is_dir():
+        return load_cloud_folder(path)
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"PK\x03\x04":  # an .npz is a zip archive of .npy arrays
+        raise ValueError(f"{path}: not a NumPy .npz archive (write it with numpy.savez or "
+                         "matlearn.recording.save_recording)")
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
@@ -214,8 +233,6 @@ def load_recording(path) -> Recording:
     kwargs = {k: data[k] for k in FORMAT_KEYS + EXTENSION_KEYS if k in data}
     if "cloud_sigma" in kwargs:
         kwargs["cloud_sigma"] = float(kwargs["cloud_sigma"])
-    if "at_rest_initially" in kwargs:
-        kwargs["at_rest_initially"] = bool(np.asarray(kwargs["at_rest_initially"]).item())
     try:
         return Recording(**kwargs)
     except ValueError as err:
@@ -274,6 +291,12 @@ def _read_cloud(path: Path) -> np.ndarray:
     return pts.reshape(-1, 3)
 
 
+def _frame_order(path: Path):
+    """Sort key of a per-frame file: its name with every run of digits compared as a number, so
+    frame_2 comes before frame_10 (scanners seldom zero-pad)."""
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", path.name)]
+
+
 def load_cloud_folder(folder, cloud_sigma: float | None = None) -> Recording:
     """A cloud-only recording from a folder of per-frame `.ply`/`.pcd` files (sorted by name)
     and `times.txt` (one time in s per line, one line per file)."""
@@ -284,7 +307,7 @@ def load_cloud_folder(folder, cloud_sigma: float | None = None) -> Recording:
     if not tfile.exists():
         raise FileNotFoundError(f"{folder}: missing times.txt (one time per frame, in s)")
     times = np.array([float(x) for x in tfile.read_text().split()])
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".ply", ".pcd"))
+    files = sorted((p for p in folder.iterdir() if p.suffix.lower() in (".ply", ".pcd")), key=_frame_order)
     if len(files) != len(times):
         raise ValueError(f"{folder}: {len(files)} .ply/.pcd files but {len(times)} times in times.txt")
     clouds = [_read_cloud(p) for p in files]

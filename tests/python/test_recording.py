@@ -97,8 +97,30 @@ def test_load_errors_name_the_file(tmp_path):
     with pytest.raises(ValueError, match="bad2.npz: markers"):
         load_recording(tmp_path / "bad2.npz")
     (tmp_path / "junk.npz").write_text("not a zip")
-    with pytest.raises(ValueError, match="not a readable"):
+    with pytest.raises(ValueError, match="junk.npz: not a NumPy .npz archive"):
         load_recording(tmp_path / "junk.npz")
+    np.save(tmp_path / "plain.npy", np.zeros(3))  # a single .npy, not an archive
+    with pytest.raises(ValueError, match="not a NumPy .npz archive"):
+        load_recording(tmp_path / "plain.npy")
+
+
+@pytest.mark.parametrize("flag", ["False", "no", np.array([True, False]), 2, 0.5])
+def test_at_rest_initially_must_be_a_boolean(tmp_path, flag):
+    """The string "False" was read as True (bool("False")): the recording replayed from rest."""
+    with pytest.raises(ValueError, match="at_rest_initially: expected a boolean"):
+        _rec(at_rest_initially=flag)
+    rec = _rec()
+    np.savez(tmp_path / "r.npz", times=rec.times, marker_rest=rec.marker_rest, markers=rec.markers,
+             at_rest_initially=np.asarray(flag))
+    with pytest.raises(ValueError, match="r.npz: at_rest_initially"):
+        load_recording(tmp_path / "r.npz")
+
+
+@pytest.mark.parametrize("flag", [True, False, np.True_, np.array(False), 1, 0])
+def test_at_rest_initially_accepts_booleans_and_0_1(tmp_path, flag):
+    assert _rec(at_rest_initially=flag).at_rest_initially is bool(flag)
+    with pytest.raises(ValueError, match="at_rest_initially"):
+        _rec(at_rest_initially=None)
 
 
 def test_cloud_folder_ply_and_pcd(tmp_path):
@@ -126,3 +148,21 @@ def test_cloud_folder_ply_and_pcd(tmp_path):
         load_cloud_folder(tmp_path)
     with pytest.raises(FileNotFoundError):
         load_cloud_folder(tmp_path / "missing")
+
+
+def test_a_cloud_folder_is_a_recording_and_its_frames_sort_by_number(tmp_path):
+    """formats.md: a folder of per-frame clouds + times.txt is the equivalent cloud-only
+    recording, so a scene may name it (load_recording); unpadded frame numbers keep their order."""
+    import trimesh
+
+    rng = np.random.default_rng(3)
+    clouds = [rng.normal(size=(3 + i, 3)) for i in range(12)]
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for i, c in enumerate(clouds):  # frame_2 must come before frame_10
+        trimesh.PointCloud(c).export(folder / f"frame_{i}.ply")
+    (folder / "times.txt").write_text("\n".join(f"{0.01 * i:.2f}" for i in range(12)))
+    rec = load_recording(folder)
+    assert rec.num_markers == 0 and rec.num_frames == 12
+    for i, c in enumerate(clouds):
+        np.testing.assert_allclose(rec.cloud(i), c, atol=1e-6)
