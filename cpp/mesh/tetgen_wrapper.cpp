@@ -23,6 +23,16 @@ void append_number(std::string& s, double x) {
 std::string tetgen_switches(double max_volume, double min_ratio) {
   if (!std::isfinite(max_volume) || !std::isfinite(min_ratio))
     throw InvalidInput("tetrahedralize: max_volume and min_ratio must be finite");
+  if (max_volume < 0)
+    throw InvalidInput("tetrahedralize: max_volume (m^3) must be positive (0: no volume bound), got " +
+                       std::to_string(max_volume));
+  // TetGen's Delaunay refinement is guaranteed to end only for a bound of 2; in practice it ends
+  // down to about 1.1 and runs without end below (1.0 and 0.5 never returned; a regular tet has
+  // 0.61, so no mesh can meet a bound below that)
+  if (min_ratio < 0 || (min_ratio > 0 && min_ratio < kMinRadiusEdgeRatio))
+    throw InvalidInput("tetrahedralize: min_ratio (TetGen's radius-edge bound) must be at least 1.1, "
+                       "or 0 for no quality bound; TetGen's refinement may never finish below it; got " +
+                       std::to_string(min_ratio));
   std::string s = "pzQ";  // PLC, zero-based, quiet
   if (min_ratio > 0) {
     s += 'q';

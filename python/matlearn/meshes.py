@@ -87,10 +87,39 @@ def folded_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.array(sorted(bad), np.int64)
 
 
-def _checked(vertices, tets, path) -> np.ndarray:
-    """`tets` of a mesh file oriented to positive volume, or a ValueError naming the folded ones."""
-    tets = _orient(vertices, tets)
-    bad = folded_tets(vertices, tets)
+def _indices_checked(n: int, tets, path, base: int = 0) -> np.ndarray:
+    """`tets` (int64), or a ValueError naming the file when they are not 4 indices each or refer
+    to a vertex outside the file's `n` (reported in the file's numbering, from `base`)."""
+    T = np.asarray(tets, np.int64)
+    if T.ndim != 2 or T.shape[1] != 4 or len(T) == 0:
+        raise ValueError(f"{path}: expected tets with 4 vertex indices each, got shape {T.shape}")
+    out = np.flatnonzero(((T < 0) | (T >= n)).any(axis=1))
+    if len(out):
+        e = int(out[0])
+        raise ValueError(f"{path}: {len(out)} tets refer to vertices that do not exist (the mesh has {n}, "
+                         f"numbered from {base}), e.g. tet {e + base} with vertices {(T[e] + base).tolist()}")
+    return T
+
+
+def _checked(vertices, tets, path, base: int = 0) -> np.ndarray:
+    """`tets` of a mesh file oriented to positive volume, or a ValueError naming the file and the
+    first bad tets: a vertex index outside the file's vertices (in the file's own numbering,
+    which starts at `base`), a vertex repeated within a tet, a zero volume, or a fold."""
+    V = np.asarray(vertices, float)
+    T = _indices_checked(len(V), tets, path, base)
+    S = np.sort(T, axis=1)
+    rep = np.flatnonzero((S[:, 1:] == S[:, :-1]).any(axis=1))
+    if len(rep):
+        raise ValueError(f"{path}: {len(rep)} tets repeat a vertex, e.g. tet {int(rep[0]) + base} with vertices "
+                         f"{(T[rep[0]] + base).tolist()}")
+    scale = float(np.linalg.norm(np.ptp(V, axis=0)))
+    vol = np.abs(np.linalg.det(V[T[:, 1:]] - V[T[:, :1]])) / 6.0
+    flat = np.flatnonzero(vol <= 1e-14 * scale**3)  # TetMesh's own bound (cpp/fem/tet_mesh.cpp)
+    if len(flat):
+        raise ValueError(f"{path}: {len(flat)} degenerate (zero-volume) tets, e.g. tets "
+                         f"{(flat[:8] + base).tolist()}; fix or re-mesh it")
+    tets = _orient(V, T)
+    bad = folded_tets(V, tets)
     if len(bad):
         raise ValueError(f"{path}: {len(bad)} tets overlap a neighbour (the mesh folds over itself: "
                          f"inverted elements), e.g. tets {bad[:8].tolist()}; fix or re-mesh it")
@@ -165,6 +194,11 @@ def tetrahedralize(vertices, faces, max_volume: float = 0.0, min_ratio: float = 
 
 
 SURFACE_SUFFIXES = {".obj", ".ply", ".stl", ".off"}
+# a surface's volume bound asking for more tets than this is refused rather than meshed for hours
+# (a max_volume written in mm^3 or cm^3 for a body in metres)
+MAX_TETGEN_TETS = 5e6
+# the smallest radius-edge bound TetGen is given (cpp/mesh: kMinRadiusEdgeRatio, which refuses less)
+MIN_RADIUS_EDGE_RATIO = 1.1
 VOLUME_SUFFIXES = {".msh", ".vtk", ".vtu", ".node", ".ele", ".mesh"}
 
 
@@ -189,6 +223,13 @@ def load_mesh(path, max_volume: float | None = None, min_ratio: float | None = N
         if max_volume is None:
             ext = np.ptp(surf.vertices, axis=0)
             max_volume = float(np.prod(ext)) / 2000.0
+        elif not max_volume > 0:
+            raise ValueError(f"{path}: max_volume must be a positive volume (m^3), got {max_volume}")
+        count = abs(float(surf.volume)) / max_volume  # TetGen makes more tets than this, not fewer
+        if count > MAX_TETGEN_TETS:
+            raise ValueError(f"{path}: max_volume = {max_volume:g} m^3 would make at least {count:.3g} tets of this "
+                             f"{abs(float(surf.volume)):.3g} m^3 body (more than {MAX_TETGEN_TETS:.0e}); are the surface "
+                             "and max_volume both in metres?")
         return tetrahedralize(surf.vertices, surf.faces, max_volume, min_ratio or 1.5)
     if suffix in (".node", ".ele"):
         return _load_tetgen(path.with_suffix(""))
@@ -204,7 +245,7 @@ def load_mesh(path, max_volume: float | None = None, min_ratio: float | None = N
         V = np.asarray(m.points, float)
         if V.shape[1] == 2:
             raise ValueError(f"{path}: 2-D points, expected 3-D")
-        T = np.concatenate(tets).astype(np.int64)
+        T = _indices_checked(len(V), np.concatenate(tets), path)
         used = np.unique(T)
         if len(used) != len(V):  # drop points not used by any tet (e.g. gmsh geometry points)
             remap = -np.ones(len(V), np.int64)
@@ -234,7 +275,7 @@ def _load_tetgen(stem: Path) -> TetMesh:
     el = rows(ele)
     m = int(el[0][0])
     tets = np.array([[int(v) for v in ln[1:5]] for ln in el[1 : m + 1]]) - first
-    return TetMesh(pts, _checked(pts, tets, ele))
+    return TetMesh(pts, _checked(pts, tets, ele, base=first))
 
 
 def save_mesh(mesh: TetMesh, path, cell_data: dict | None = None) -> None:

@@ -194,12 +194,14 @@ def initial_state(scene, model, rec: Recording, embedding: Embedding | None = No
     if rec.num_markers == 0 and not rec.has_drive:
         raise ValueError(
             "initial_state: the recording has no markers or drive points and is not at rest "
-            "initially; estimate the initial state from its clouds first"
+            "initially; track its clouds into markers first (`matlearn track SCENE --out DIR`, which "
+            "writes a scene whose recordings have them)"
         )
     emb = embedding if embedding is not None else embed_points(scene.mesh, rec.marker_rest)
     integ = scene.integrator(model)
     if not rec.seen[0].any() and not rec.has_drive:
-        raise ValueError("initial_state: no marker is seen in frame 0")
+        raise ValueError("initial_state: no marker is seen in frame 0, and the recording does not say it "
+                         "starts at rest (at_rest_initially), so its first pose is unknown")
     x0 = _held_pose(scene, model, rec, 0, emb, integ, refine)
     if start == "released":
         from .release import released_start

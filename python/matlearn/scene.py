@@ -210,6 +210,8 @@ def _number(value, key: str, where: str, path: Path) -> float:
     """float(value), or a ValueError naming the key and the value."""
     if isinstance(value, bool):
         raise ValueError(f"{path}: [{where}] {key} must be a number, got {value!r}")
+    if isinstance(value, str):
+        raise ValueError(f"{path}: [{where}] {key} must be a number, got the string {value!r} (write it without quotes)")
     try:
         x = float(value)
     except (TypeError, ValueError):
@@ -273,6 +275,11 @@ def load_scene(path) -> Scene:
     m = doc["mesh"]
     mesh_file = base / _text(_require(m, "file", "mesh", path), "file", "mesh", path)
     opts = {k: _number(m[k], k, "mesh", path) for k in ("max_volume", "min_ratio") if k in m}
+    if opts.get("max_volume", 1.0) <= 0:
+        raise ValueError(f"{path}: [mesh] max_volume must be a positive volume (m^3), got {opts['max_volume']}")
+    if opts.get("min_ratio", 2.0) < meshes.MIN_RADIUS_EDGE_RATIO:
+        raise ValueError(f"{path}: [mesh] min_ratio must be at least {meshes.MIN_RADIUS_EDGE_RATIO} (TetGen's "
+                         f"radius-edge bound: below it its refinement may never finish), got {opts['min_ratio']}")
     mesh = meshes.load_mesh(mesh_file, **opts)
 
     mat = doc["material"]
@@ -314,10 +321,15 @@ def load_scene(path) -> Scene:
         if not fpath.exists():
             raise FileNotFoundError(f"{path}: fixed_vertices file not found: {fpath}")
         try:
-            fixed = np.atleast_1d(np.loadtxt(fpath, dtype=np.int64, comments="#"))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # numpy's "input contained no data": named below
+                fixed = np.atleast_1d(np.loadtxt(fpath, dtype=np.int64, comments="#"))
         except ValueError as err:
             raise ValueError(f"{path}: fixed_vertices file {fpath}: expected one integer vertex "
                              f"index per line ({err})") from None
+        if len(fixed) == 0:  # as a fixed_box with no vertex in it
+            raise ValueError(f"{path}: fixed_vertices file {fpath} lists no vertex (for a free body, "
+                             "leave out [boundary])")
         bad = fixed[(fixed < 0) | (fixed >= mesh.num_vertices)]
         if len(bad):
             raise ValueError(f"{path}: fixed_vertices file {fpath}: vertex index {int(bad[0])} is out "

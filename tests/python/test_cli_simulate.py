@@ -106,6 +106,8 @@ def test_an_existing_recording_is_never_overwritten_silently(scene_path, tmp_pat
         (["--replay", "3"], "--replay 3"),
         (["--model", "no_such_run"], "model run directory not found"),
         (["--load-box", *TIP_BOX], "give --load FX FY FZ too"),
+        (["--frame-rate", "0"], "--frame-rate must be > 0"),  # 0 was read as "every step"
+        (["--frame-rate", "-10"], "--frame-rate must be > 0"),
     ],
 )
 def test_errors_are_reported(scene_path, tmp_path, capsys, extra, message):
@@ -162,3 +164,43 @@ def test_version_and_out_paths_that_are_files(scene_path, tmp_path, capsys):
     assert "no recording is point clouds only" in capsys.readouterr().err
     assert cli.main(["track", str(path), "--out", str(path.parent), "--force"]) == 2  # never the input
     assert "is the scene's own folder" in capsys.readouterr().err
+
+
+def test_input_slips_are_named_before_anything_is_written(scene_path, tmp_path, capsys):
+    """A comma-separated --markers file, a --vtu that is a file (the recording was written before
+    the error), a load with every vertex clamped, a duration that is no whole number of steps."""
+    path, _ = scene_path
+    out = tmp_path / "x.npz"
+    csv = tmp_path / "points.csv"
+    csv.write_text("0.1,0.02,0.0\n0.2,0.0,0.0\n")
+    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet", "--markers", str(csv)]) == 2
+    assert "--markers " + str(csv) + ": expected x y z rest positions (m) separated by spaces" in capsys.readouterr().err
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet", "--duration", "0.01",
+                     "--all-surface", "--vtu", str(afile)]) == 2
+    assert "--vtu " + str(afile) + " is a file" in capsys.readouterr().err
+    assert not out.exists()
+    mesh = meshes.bar(0.2, 0.04, 0.04, cells=(5, 1, 1))
+    held = Scene(mesh, Material(youngs_modulus=2e5), Damping(), np.arange(mesh.num_vertices), 1e-3)
+    held_path = save_scene(held, tmp_path / "held" / "scene.toml")
+    assert cli.main(["simulate", str(held_path), "--out", str(out), "--quiet", "--load", "0", "1", "0"]) == 2
+    assert "every vertex is clamped" in capsys.readouterr().err
+    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet", "--duration", "0.0026",
+                     "--all-surface"]) == 0
+    assert "--duration 0.0026 s is not a whole number of time steps (0.001 s): 0.003 s simulated" in capsys.readouterr().err
+    assert load_recording(out).times[-1] == pytest.approx(0.003)
+
+
+def test_a_replayed_recording_without_a_first_pose_is_named(tmp_path, capsys):
+    mesh = meshes.bar(0.2, 0.04, 0.04, cells=(5, 1, 1))
+    rest = np.asarray(mesh.vertices)[meshes.surface_vertices(mesh)][:6]
+    markers = np.repeat(rest[None], 4, axis=0)
+    markers[0] = np.nan  # frame 0 unseen and not at rest: no first pose
+    save_recording(Recording(0.001 * np.arange(4), rest, markers), tmp_path / "late.npz")
+    scene = Scene(mesh, Material(youngs_modulus=2e5), Damping(), vertices_in_box(mesh.vertices, CLAMP), 1e-3,
+                  recordings=[(tmp_path / "late.npz", "train")], fixed_box=CLAMP)
+    path = save_scene(scene, tmp_path / "scene.toml")
+    assert cli.main(["simulate", str(path), "--replay", "0", "--out", str(tmp_path / "x.npz"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "recording 0 (late.npz): initial_state: no marker is seen in frame 0" in err and "at_rest_initially" in err

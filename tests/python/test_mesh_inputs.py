@@ -90,3 +90,41 @@ def test_a_folded_mesh_is_refused(tmp_path, suffix):
     bad = meshes.folded_tets(V, meshes._orient(V, T))
     touching = np.flatnonzero(np.any(T == c, axis=1))
     assert len(bad) and set(bad) <= set(touching) | set(np.flatnonzero(np.any(np.isin(T, T[touching]), axis=1)))
+
+
+def _tetgen(tmp_path, V, T, base=1):
+    (tmp_path / "b.node").write_text(
+        f"{len(V)} 3 0 0\n" + "".join(f"{i + base} {x} {y} {z}\n" for i, (x, y, z) in enumerate(V)))
+    (tmp_path / "b.ele").write_text(
+        f"{len(T)} 4 0\n" + "".join(f"{i + base} " + " ".join(str(v + base) for v in t) + "\n"
+                                    for i, t in enumerate(T)))
+    return tmp_path / "b.ele"
+
+
+@pytest.mark.parametrize("base", [0, 1])
+def test_bad_tets_are_named_with_the_file_and_its_numbering(tmp_path, base):
+    """A .ele index beyond the .node count raised numpy's IndexError; a repeated vertex was called
+    a fold and a flat tet was named without its file."""
+    V, T = _box()
+    bad = T.copy()
+    bad[5, 2] = len(V)  # one past the last vertex
+    with pytest.raises(ValueError, match=rf"b.ele: 1 tets refer to vertices that do not exist \(the mesh has "
+                                         rf"{len(V)}, numbered from {base}\), e.g. tet {5 + base} "):
+        meshes.load_mesh(_tetgen(tmp_path, V, bad, base))
+    bad = T.copy()
+    bad[3, 1] = bad[3, 0]
+    with pytest.raises(ValueError, match=rf"b.ele: 1 tets repeat a vertex, e.g. tet {3 + base} "):
+        meshes.load_mesh(_tetgen(tmp_path, V, bad, base))
+    flat = np.vstack([V, 0.5 * (V[T[0, 0]] + V[T[0, 1]])])  # a tet on an edge's midpoint: no volume
+    with pytest.raises(ValueError, match=rf"b.ele: 1 degenerate \(zero-volume\) tets, e.g. tets \[{len(T) + base}\]"):
+        meshes.load_mesh(_tetgen(tmp_path, flat, np.vstack([T, [T[0, 0], T[0, 1], len(V), T[0, 2]]]), base))
+    assert meshes.load_mesh(_tetgen(tmp_path, V, T, base)).num_tets == len(T)  # the good file loads
+
+
+def test_a_volume_mesh_index_out_of_range_is_named(tmp_path):
+    V, T = _box()
+    T = T.copy()
+    T[0, 0] = len(V) + 3
+    meshio.write(tmp_path / "m.vtu", meshio.Mesh(V, [("tetra", T)]))
+    with pytest.raises(ValueError, match=r"m.vtu: 1 tets refer to vertices that do not exist"):
+        meshes.load_mesh(tmp_path / "m.vtu")

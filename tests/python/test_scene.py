@@ -114,6 +114,11 @@ def test_fixed_vertices_file(example_dir):
     # Without a box the clamp is saved as a vertex list.
     back = load_scene(save_scene(sc, d / "copy" / "scene.toml"))
     np.testing.assert_array_equal(back.fixed, [0, 3, 7])
+    # an empty file clamped nothing, with only numpy's warning (a box with no vertex is an error)
+    (d / "fixed.txt").write_text("# no vertex\n")
+    with pytest.raises(ValueError, match="fixed.txt lists no vertex"), warnings.catch_warnings():
+        warnings.simplefilter("error")  # and no numpy warning on the way
+        load_scene(d / "scene.toml")
 
 
 @pytest.mark.parametrize(
@@ -177,6 +182,36 @@ def test_surface_mesh_is_tetrahedralised_with_the_scene_bounds(tmp_path):
     assert sc.gravity == (0.0, -9.81, 0.0) and sc.damping.alpha_stiffness == 0.0 and len(sc.fixed) >= 4
 
 
+@pytest.mark.parametrize("bounds, match", [
+    ("min_ratio = 1.0", r"\[mesh\] min_ratio must be at least 1.1"),  # TetGen refined without end
+    ("min_ratio = 0.5", r"\[mesh\] min_ratio must be at least 1.1"),
+    ("max_volume = 0.0", r"\[mesh\] max_volume must be a positive volume"),  # was silently no bound
+    ("max_volume = -1.0", r"\[mesh\] max_volume must be a positive volume"),
+    ("max_volume = 1e-12", r"box.obj: max_volume = 1e-12 m\^3 would make at least 4e\+07 tets"),  # mm^3 for m^3
+])
+def test_surface_bounds_tetgen_cannot_meet_are_named(tmp_path, bounds, match):
+    import trimesh
+
+    trimesh.creation.box(extents=(0.1, 0.02, 0.02)).export(tmp_path / "box.obj")
+    text = (
+        f'[mesh]\nfile = "box.obj"\n{bounds}\n'
+        '[material]\nmodel = "corotated"\nyoungs_modulus = 2e5\npoisson_ratio = 0.3\ndensity = 900.0\n'
+        "[simulation]\ntime_step = 0.002\n"
+    )
+    (tmp_path / "scene.toml").write_text(text)
+    with pytest.raises(ValueError, match=match):
+        load_scene(tmp_path / "scene.toml")
+
+
+def test_tetgen_bounds_are_checked_in_the_core_too():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.1, 0.02, 0.02))
+    with pytest.raises(ValueError, match="min_ratio .* must be at least 1.1"):
+        meshes.tetrahedralize(box.vertices, box.faces, 1e-6, 1.0)
+    assert meshes.tetrahedralize(box.vertices, box.faces, 1e-6, meshes.MIN_RADIUS_EDGE_RATIO).num_tets > 0
+
+
 def test_a_clamp_that_cannot_hold_the_body_warns(example_dir):
     """A clamp of 1-2 vertices, or of vertices on one line, leaves a rigid rotation free: loading
     the scene says so (static solves would fail later with a CHOLMOD message); the example's
@@ -225,7 +260,8 @@ def test_misspelt_keys_and_sections_are_reported(example_dir, old, new, match):
 @pytest.mark.parametrize(
     "old, new, match",
     [
-        ("youngs_modulus = 1.0e5", 'youngs_modulus = "abc"', r"\[material\] youngs_modulus must be a number, got 'abc'"),
+        ("youngs_modulus = 1.0e5", 'youngs_modulus = "abc"', r"\[material\] youngs_modulus must be a number, got the string 'abc'"),
+        ("youngs_modulus = 1.0e5", 'youngs_modulus = "1e5"', r"youngs_modulus must be a number, got the string '1e5' \(write it without quotes\)"),
         ("youngs_modulus = 1.0e5", "youngs_modulus = -1.0e5", r"youngs_modulus must be > 0 \(Pa\), got -100000.0"),
         ("alpha_mass = 0.0", "alpha_mass = -1.0", "alpha_mass -1.0"),
         ("time_step = 0.001", "time_step = true", r"\[simulation\] time_step must be a number"),

@@ -62,7 +62,8 @@ def load_forces(scene, model, force, box) -> np.ndarray:
     idx = np.arange(n) if box is None else vertices_in_box(scene.mesh.vertices, np.reshape(box, (2, 3)))
     idx = np.setdiff1d(idx, scene.fixed)
     if len(idx) == 0:
-        raise ValueError(f"--load-box {box} contains no free vertex")
+        raise ValueError(f"--load-box {box} contains no free vertex" if box is not None else
+                         "--load: every vertex is clamped, so no vertex can carry the load")
     m = np.asarray(model.vertex_mass)[idx]
     f[idx] = np.outer(m / m.sum(), np.asarray(force, float))
     return f
@@ -94,7 +95,11 @@ def _marker_points(scene, args) -> np.ndarray:
         p = Path(args.markers)
         if not p.exists():
             raise FileNotFoundError(f"--markers file not found: {p}")
-        pts = np.atleast_2d(np.loadtxt(p, comments="#"))
+        try:
+            pts = np.atleast_2d(np.loadtxt(p, comments="#"))
+        except ValueError as err:
+            raise ValueError(f"--markers {p}: expected x y z rest positions (m) separated by spaces, "
+                             f"one point per line ({err})") from None
         if pts.shape[1] != 3:
             raise ValueError(f"--markers: expected 3 columns (x y z rest positions), got {pts.shape}")
         scene.check_points(pts, "--markers: point")
@@ -118,6 +123,10 @@ def run(args) -> int:
     if args.load_box is not None and args.load is None:
         raise ValueError("--load-box selects where --load acts; give --load FX FY FZ too")
     vtu = Path(args.vtu) if args.vtu else None
+    if vtu is not None and vtu.exists() and not vtu.is_dir():  # before the recording is written
+        raise ValueError(f"--vtu {vtu} is a file; it names a folder for the ParaView series")
+    if args.frame_rate is not None and not args.frame_rate > 0:
+        raise ValueError(f"--frame-rate must be > 0 (frames per second), got {args.frame_rate}")
     if vtu is not None and (vtu / "frame.pvd").exists() and not args.force:
         raise ValueError(f"--vtu {vtu} already holds a time series (frame.pvd); use --force to replace it")
     model = load_correction(args.model, scene) if args.model else scene.model()
@@ -132,7 +141,10 @@ def run(args) -> int:
             raise ValueError(f"--replay {args.replay}: the scene has {len(paths)} recordings")
         src = load_recording(paths[args.replay])
         scene.check_recording(src, f"recording {args.replay} ({Path(paths[args.replay]).name})")
-        sim_t, X, _ = replay.simulate_recording(scene, model, src, progress=bar)
+        try:
+            sim_t, X, _ = replay.simulate_recording(scene, model, src, progress=bar)
+        except ValueError as err:  # the recording's own problem (its first pose, ...): name it
+            raise ValueError(f"recording {args.replay} ({Path(paths[args.replay]).name}): {err}") from None
         times, at_rest = src.times, src.at_rest_initially
         if not (args.markers or args.all_surface):
             points = src.marker_rest
@@ -143,6 +155,9 @@ def run(args) -> int:
             duration = load_recording(paths[0]).duration if paths else 1.0
         sim_t, X, at_rest = simulate_scene(scene, model, duration, args.load, args.load_box,
                                            args.release, bar)
+        if abs(sim_t[-1] - duration) > 1e-9 * max(duration, 1.0):
+            print(f"note: --duration {duration:g} s is not a whole number of time steps ({scene.time_step:g} s): "
+                  f"{sim_t[-1]:g} s simulated", file=sys.stderr)
         if args.frame_rate:
             times = np.arange(0.0, sim_t[-1] + 1e-9, 1.0 / args.frame_rate)
         else:

@@ -59,7 +59,7 @@ TEST_CASE(switch_numbers_are_printf_g6) {
   // The bounds are written as "%.6g" in the C locale (as the iostream that built them before did
   // under the classic locale), so a mesh built from the same bounds is the same mesh.
   const double volumes[] = {1.2345678901234567e-7, 0.01, 2.5e-5, 123456789.0};
-  const double ratios[] = {1.4142135623730951, 1.5, 2.0, 1.0000004};
+  const double ratios[] = {1.4142135623730951, 1.5, 2.0, 1.1000004};
   for (double v : volumes)
     for (double r : ratios) {
       char want[128];
@@ -72,6 +72,15 @@ TEST_CASE(switch_numbers_are_printf_g6) {
 TEST_CASE(non_finite_bounds_are_rejected) {
   CHECK_THROWS(mesh::tetgen_switches(std::nan(""), 1.5), InvalidInput);
   CHECK_THROWS(mesh::tetgen_switches(0.01, INFINITY), InvalidInput);
+}
+
+TEST_CASE(bounds_tetgen_cannot_meet_are_rejected) {
+  // a radius-edge bound of 1.0 or 0.5 made TetGen refine without end (a regular tet has 0.61)
+  CHECK_THROWS(mesh::tetgen_switches(0.01, 1.0), InvalidInput);
+  CHECK_THROWS(mesh::tetgen_switches(0.01, 0.5), InvalidInput);
+  CHECK_THROWS(mesh::tetgen_switches(0.01, -1.5), InvalidInput);
+  CHECK_THROWS(mesh::tetgen_switches(-0.01, 1.5), InvalidInput);
+  CHECK(mesh::tetgen_switches(0.01, mesh::kMinRadiusEdgeRatio) == "pzQq1.1a0.01");
 }
 
 TEST_CASE(cube_under_a_decimal_comma_locale) {
