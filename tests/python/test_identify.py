@@ -125,3 +125,22 @@ def test_simulate_warning_follows_the_runs_metadata(tmp_path):
     assert "is of another scene" in warning(free, other, True)
     assert "start_nominal's model" in warning({**free, "transfer_model": "start_nominal"}, other, True)
     assert "start_nominal" not in warning({**free, "transfer_model": "start_nominal"}, own, False)
+
+
+def test_a_scale_fixed_within_a_bounded_span_is_called_loose(monkeypatch):
+    """The rms errors of a cloud-tracked release shorter than a period (new-user walkthrough): the
+    lowest at x2, x1 within 2x of it. The scale is fixed to x1..x2, not left free: the message
+    says so instead of 'do not determine'."""
+    from matlearn.learning import identify
+
+    rms = {0.25: 2.41, 0.5: 1.88, 1.0: 1.07, 2.0: 0.687, 4.0: 3.16}
+    monkeypatch.setattr(identify, "_marker_recordings", lambda scene, role: [("cloud.npz", None)])
+    monkeypatch.setattr(identify, "_motions", lambda scene, recs, role: (5.38, [5.38]))
+    monkeypatch.setattr(identify, "_replay_rms", lambda scene, f, role, n: (rms[f], [rms[f]]))
+    c = stress_scale_check(None, lambda f: f, factors=(0.25, 0.5, 2.0, 4.0))
+    assert not c["determined"] and c["best_factor"] == 2.0
+    assert c["message"].startswith("the train recordings fix the stress scale only loosely: every stress "
+                                   "scaled from x1 to x2 keeps the train rms error near its lowest, which is at x2")
+    rms[0.25] = 0.7  # flat down to the grid's end: free, not loose
+    c = stress_scale_check(None, lambda f: f, factors=(0.25, 0.5, 2.0, 4.0))
+    assert "do not determine the stress scale: with every stress scaled from x0.25 or less to x2" in c["message"]
