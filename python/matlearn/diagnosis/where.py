@@ -43,8 +43,9 @@ def constrained_residual(problem, model, rec, max_frames: int = 30) -> ResidualF
     fixed = np.zeros(scene.mesh.num_vertices, bool)
     fixed[scene.fixed] = True
     V = np.asarray(scene.mesh.vertices)
-    # marker displacement -> nearest vertex (averaged); unseen frames filled by interpolation,
-    # markers never seen dropped (the learning step's gap filling)
+    # marker displacement -> nearest vertex (averaged); unseen frames filled by interpolation in
+    # time, markers never seen dropped (the learning step's gap filling without its spatial
+    # fill: not yet measured on the diagnosis suites)
     mk, seen_markers = fill_marker_gaps(rec.times, rec.markers)
     near = near[seen_markers]
     disp = mk - rec.marker_rest[seen_markers][None]
