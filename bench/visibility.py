@@ -22,7 +22,8 @@ never increases, the last iterate is the best, and the held-out error ends below
 model's. Writes bench/results/visibility.json: {"case", "target", "all_converged",
 "scan_within_1p5x_of_dense", "load_avg_1min_start/end", "conditions": [{"condition",
 "max_error_pct_test", "nominal_max_error_pct_test", "best_iteration", "lam", "converged",
-"iterations": [...], "tracking": {...} (scan conditions), "wall_s"}]}. Re-running skips
+"iterations": [...], "tracking": {...} (scan conditions), "wall_s", "commit" (the code it
+ran on)}]}. Re-running skips
 finished conditions (use --force to redo) and `learn` resumes interrupted runs.
 
     python bench/visibility.py [--iterations 6] [--work DIR] [--only markers_100,scan_1view]
@@ -46,6 +47,9 @@ from matlearn.scene import load_scene, save_scene
 from matlearn.synthetic import Motion, make_case
 
 ROOT = Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT))
+from provenance import code_commit  # noqa: E402
+
 RESULTS = ROOT / "results" / "visibility.json"
 CONDITIONS = ("markers_100", "markers_13", "markers_6", "scan_1view", "scan_3view")
 BOX = [[-1.0, -1.0, -1.0], [1e-3, 1.0, 1.0]]
@@ -214,6 +218,7 @@ def main(argv=None) -> int:
             row = {"condition": name, "error": f"{type(err).__name__}: {err}", "traceback": tb[-8:]}
         if extra:
             row["tracking"] = extra
+        row["commit"] = code_commit()  # the code this condition ran on (conditions may be resumed)
         done[name] = row
         _write(done)
     _write(done)
