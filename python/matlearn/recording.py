@@ -11,7 +11,8 @@ matlearn extension (optional keys, ignored by tools that do not know them):
   clamp). `drive` (T, D, 3): their positions at `times`. Replay prescribes the model vertices at
   (or nearest to) these points to follow them, interpolated linearly in time between samples.
 
-A folder of per-frame `.ply`/`.pcd` clouds plus `times.txt` is read by :func:`load_cloud_folder`.
+A folder of per-frame `.ply`/`.pcd` clouds plus `times.txt` is read by :func:`load_cloud_folder`,
+and by :func:`load_recording` wherever a recording is named (formats.md: the cloud-only equivalent).
 """
 from __future__ import annotations
 
@@ -298,8 +299,9 @@ def _frame_order(path: Path):
 
 
 def load_cloud_folder(folder, cloud_sigma: float | None = None) -> Recording:
-    """A cloud-only recording from a folder of per-frame `.ply`/`.pcd` files (sorted by name)
-    and `times.txt` (one time in s per line, one line per file)."""
+    """A cloud-only recording from a folder of per-frame `.ply`/`.pcd` files (in name order, runs
+    of digits compared as numbers: `_frame_order`) and `times.txt` (one time in s per line, one
+    line per file)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"point-cloud folder not found: {folder}")
