@@ -43,10 +43,9 @@ def constrained_residual(problem, model, rec, max_frames: int = 30) -> ResidualF
     fixed = np.zeros(scene.mesh.num_vertices, bool)
     fixed[scene.fixed] = True
     V = np.asarray(scene.mesh.vertices)
-    # marker displacement -> nearest vertex (averaged); unseen frames filled by interpolation in
-    # time, markers never seen dropped (the learning step's gap filling without its spatial
-    # fill: not yet measured on the diagnosis suites)
-    mk, seen_markers = fill_marker_gaps(rec.times, rec.markers)
+    # marker displacement -> nearest vertex (averaged); unseen frames filled as in the learning
+    # step (from the frame's seen markers, short gaps in time), markers never seen dropped
+    mk, seen_markers = fill_marker_gaps(rec.times, rec.markers, rec.marker_rest)
     near = near[seen_markers]
     disp = mk - rec.marker_rest[seen_markers][None]
     uniq, inv = np.unique(near, return_inverse=True)
