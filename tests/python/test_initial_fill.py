@@ -2,7 +2,6 @@
 time across short gaps and from the frame's other markers elsewhere (a thin-plate spline over rest
 positions), never held where a marker was first or last seen."""
 import numpy as np
-import pytest
 
 from matlearn.learning.initial import SHORT_GAP, fill_marker_gaps, initial_trajectory
 from matlearn.recording import Recording
