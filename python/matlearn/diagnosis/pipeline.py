@@ -412,28 +412,30 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
 
     # ---- how much: held-out gaps
     cumulative_params = _cumulative_params(verdict, selected.params if selected else {})
-    alone = {}  # an effect not in the verdict: its own gap (its refined or its linearised fit)
-    for e in ranked:
+    wanted = {"before": (nominal, False), "offset": ({}, False)}  # {key: (model or effects, fast)}
+    wanted.update({("with", n): (p, False) for n, p in cumulative_params.items()})
+    for e in ranked:  # an effect not in the verdict: its own gap (its refined or its linearised fit)
         if e["name"] not in cumulative_params:
             fit = e["_fit"]
-            alone[e["name"]] = fit.params if fit else {e["name"]: _theta_of(e, selected, cheap)}
-    refined_gap = _prefetch_gaps(P, ctx, nominal, list(cumulative_params.values()), list(alone.values()),
-                                 hist["reference"] if hist is not None and hist["parameters"] else None)
-    gap_before = _safe_gap(P, None, None, model=nominal)  # None: the nominal model fails there
+            wanted[("alone", e["name"])] = (fit.params if fit else {e["name"]: _theta_of(e, selected, cheap)}, True)
+    if hist is not None and hist["parameters"]:
+        wanted["history"] = (hist["reference"], False)
+    gaps, refined_gap = _held_out_gaps(P, ctx, wanted)
+    gap_before = gaps["before"]  # None: the nominal model fails there
     # the mesh's share of the gap: the nominal material with only the stiffness offset the
     # coarse mesh takes (no effect added), so a user sees how much a finer mesh would remove
     disc_report = {"stiffness_factor": float(np.exp(ctx.offset_applied)),
                    "refined_mesh_factor": float(np.exp(ctx.offset_reference)),
                    "refined_mesh_modal_factor": P.disc_modal_factor,
                    "factor_range": [float(np.exp(t)) for t in ctx.offset_range],
-                   "gap_with_offset": _safe_gap(P, ctx, {}),
+                   "gap_with_offset": gaps["offset"],
                    "gap_refined_mesh": refined_gap}
     if disc_report["gap_refined_mesh"] and gap_before:
         from .report import gap_label
 
         say(f"{gap_label(bool(P.test))} {gap_before['max_error_pct']:.2f} %; "
             f"the nominal material on the once-refined mesh {disc_report['gap_refined_mesh']['max_error_pct']:.2f} %")
-    cumulative = {name: _safe_gap(P, ctx, params) for name, params in cumulative_params.items()}
+    cumulative = {name: gaps[("with", name)] for name in cumulative_params}
     # the effects list is ranked best first (formats.md): the verdict's effects lead, in its order
     # (a pair chosen jointly, _pair_challenge, can rank below a single family it replaced)
     front = [r for v in verdict for r in ranked if r["name"] == v]
@@ -448,7 +450,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         if name in cumulative:
             entry["gap_after"] = cumulative[name]
         else:  # not in the verdict: the effect alone (its refined or its linearised fit)
-            entry["gap_after"] = _safe_gap(P, ctx, alone[name], fast=True)
+            entry["gap_after"] = gaps[("alone", name)]
         if e["confounded_with"]:
             entry["confounded_with"] = e["confounded_with"]
         if "evidence" in e:  # explained measured on other evidence than the train markers
@@ -462,7 +464,7 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
         # of the test leaves (the verdict's stateless effects, or the nominal model, with the
         # uniform stiffness refit), i.e. the best a correction N(Fh, Fhdot) of this kind reaches
         stateless = [cumulative[n] for n in verdict if n in cumulative and cumulative[n]]
-        after = _safe_gap(P, ctx, hist["reference"]) if hist["parameters"] else None
+        after = gaps.get("history")
         effects.append({"name": "history_dependence", "explained": hist["explained"],
                         "score": hist["score"], "parameters": hist["parameters"],
                         "gap_after": after or (stateless[-1] if stateless else (gap_before and dict(gap_before))),
@@ -553,28 +555,33 @@ def _theta_of(e, selected, cheap):
     return fit.params[name] if fit else cheap[name][0]
 
 
-def _prefetch_gaps(P, ctx, nominal, cumulative, alone, history_reference):
-    """Simulate every held-out prediction the result reports, side by side (Problem.prefetch):
-    the nominal model's and the mesh offset's, the verdict's cumulative models (full Newton),
-    the other effects alone (fast) and the history check's stateless reference; the refined
-    mesh's gap (`_refined_gap`) runs in the same batch, and is returned. The gaps are then
-    taken, in the result's order, from the memoised predictions: the same numbers as one by
-    one. A model is simulated once however often it is reported (by fingerprint), so the
-    simulation count does not depend on the threads."""
-    wanted = [(nominal, False), (ctx, {}, False)] + [(ctx, p, False) for p in cumulative] + \
-        [(ctx, p, True) for p in alone] + ([(ctx, history_reference, False)] if history_reference else [])
-    models, fasts, seen = [], [], set()
-    for w in wanted:
+def _held_out_gaps(P, ctx, wanted: dict):
+    """The held-out gaps the result reports, simulated side by side: wanted {key: (a model, or
+    the effects' parameters on ctx, fast solver?)} -> ({key: gap, None where the model cannot be
+    built or simulated on the held-out motion (reported, not hidden: contract.conform)}, the
+    refined mesh's gap). Every model's predictions and the refined mesh's gap (`_refined_gap`)
+    run as one batch (Problem.prefetch), a model once however often it is reported (by
+    fingerprint, so the simulation count does not depend on the threads); the gaps are then
+    read from the memoised predictions, the same numbers as one by one."""
+    models, unique, fasts, seen = {}, [], [], set()
+    for key, (what, fast) in wanted.items():
         try:
-            m = w[0] if len(w) == 2 else build_model(w[0], w[1])
-        except (RuntimeError, ValueError):  # _safe_gap meets and reports it
-            continue
-        key = (P.fingerprint(m), w[-1])
-        if key not in seen:
-            seen.add(key)
-            models.append(m)
-            fasts.append(w[-1])
-    return P.prefetch(models, P.test or P.train, fasts, extra=[lambda: _refined_gap(P)])[0]
+            m = build_model(ctx, what) if isinstance(what, dict) else what
+        except (RuntimeError, ValueError):
+            m = None
+        models[key] = m
+        if m is not None and (ident := (P.fingerprint(m), fast)) not in seen:
+            seen.add(ident)
+            unique.append(m)
+            fasts.append(fast)
+    refined = P.prefetch(unique, P.test or P.train, fasts, extra=[lambda: _refined_gap(P)])[0]
+    gaps = {}
+    for key, (_, fast) in wanted.items():
+        try:
+            gaps[key] = None if models[key] is None else fitting.gap(P, models[key], fast=fast)
+        except (RuntimeError, ValueError):  # a failed or non-finite simulation
+            gaps[key] = None
+    return gaps, refined
 
 
 def _refined_gap(P):
@@ -602,15 +609,6 @@ def _cumulative_params(verdict, params) -> dict:
     fams = [v for v in verdict if v in FAMILIES]
     return {name: {n: params[n] for n in fams[: i + 1] + [NUISANCE] if n in params}
             for i, name in enumerate(fams)}
-
-
-def _safe_gap(P, ctx, params, fast=False, model=None):
-    """Held-out gap with the effects `params` added (or of `model`); None when the model cannot
-    be simulated on the held-out motion (reported, not hidden: contract.conform)."""
-    try:
-        return fitting.gap(P, model if model is not None else fitting.build_model(ctx, params), fast=fast)
-    except (RuntimeError, ValueError):  # a failed or non-finite simulation
-        return None
 
 
 def _linear_fit_nuisance(Jn, j_offset, r0, bounds):
