@@ -48,12 +48,10 @@ def fill_marker_gaps(times: np.ndarray, markers: np.ndarray, rest: np.ndarray | 
     T = len(times)
     first = np.argmax(s, axis=0)
     last = T - 1 - np.argmax(s[::-1], axis=0)
-    # the length of the unseen run each sample lies in
-    run = np.zeros(s.shape, int)
-    for t in range(T):  # a cumulative count along time, vectorised over markers
-        run[t] = np.where(s[t], 0, (run[t - 1] if t else 0) + 1)
-    for t in range(T - 2, -1, -1):
-        run[t] = np.where(s[t] | s[t + 1], run[t], run[t + 1])
+    # the length of the unseen run each sample lies in: the unseen samples of a marker after the
+    # same number of sightings form one run
+    key = np.cumsum(s, axis=0) * s.shape[1] + np.arange(s.shape[1])
+    run = np.bincount(key[~s], minlength=key.max() + 1)[key]
     frame = np.arange(T)[:, None]
     inside = (frame > first[None]) & (frame < last[None])
     spatial = ~s & ~(inside & (run <= SHORT_GAP))
