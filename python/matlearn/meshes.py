@@ -197,7 +197,8 @@ SURFACE_SUFFIXES = {".obj", ".ply", ".stl", ".off"}
 # a surface's volume bound asking for more tets than this is refused rather than meshed for hours
 # (a max_volume written in mm^3 or cm^3 for a body in metres)
 MAX_TETGEN_TETS = 5e6
-# the smallest radius-edge bound TetGen is given (cpp/mesh: kMinRadiusEdgeRatio, which refuses less)
+# the smallest radius-edge bound a surface is meshed with (load_mesh; the core's kMinRadiusEdgeRatio
+# refuses less for every caller)
 MIN_RADIUS_EDGE_RATIO = 1.1
 VOLUME_SUFFIXES = {".msh", ".vtk", ".vtu", ".node", ".ele", ".mesh"}
 
@@ -225,12 +226,15 @@ def load_mesh(path, max_volume: float | None = None, min_ratio: float | None = N
             max_volume = float(np.prod(ext)) / 2000.0
         elif not max_volume > 0:
             raise ValueError(f"{path}: max_volume must be a positive volume (m^3), got {max_volume}")
+        if min_ratio is not None and not min_ratio >= MIN_RADIUS_EDGE_RATIO:
+            raise ValueError(f"{path}: min_ratio must be at least {MIN_RADIUS_EDGE_RATIO} (TetGen's radius-edge "
+                             f"bound: below it its refinement may never finish), got {min_ratio}")
         count = abs(float(surf.volume)) / max_volume  # TetGen makes more tets than this, not fewer
         if count > MAX_TETGEN_TETS:
             raise ValueError(f"{path}: max_volume = {max_volume:g} m^3 would make at least {count:.3g} tets of this "
                              f"{abs(float(surf.volume)):.3g} m^3 body (more than {MAX_TETGEN_TETS:.0e}); are the surface "
                              "and max_volume both in metres?")
-        return tetrahedralize(surf.vertices, surf.faces, max_volume, min_ratio or 1.5)
+        return tetrahedralize(surf.vertices, surf.faces, max_volume, 1.5 if min_ratio is None else min_ratio)
     if suffix in (".node", ".ele"):
         return _load_tetgen(path.with_suffix(""))
     if suffix in VOLUME_SUFFIXES:

@@ -275,11 +275,6 @@ def load_scene(path) -> Scene:
     m = doc["mesh"]
     mesh_file = base / _text(_require(m, "file", "mesh", path), "file", "mesh", path)
     opts = {k: _number(m[k], k, "mesh", path) for k in ("max_volume", "min_ratio") if k in m}
-    if opts.get("max_volume", 1.0) <= 0:
-        raise ValueError(f"{path}: [mesh] max_volume must be a positive volume (m^3), got {opts['max_volume']}")
-    if opts.get("min_ratio", 2.0) < meshes.MIN_RADIUS_EDGE_RATIO:
-        raise ValueError(f"{path}: [mesh] min_ratio must be at least {meshes.MIN_RADIUS_EDGE_RATIO} (TetGen's "
-                         f"radius-edge bound: below it its refinement may never finish), got {opts['min_ratio']}")
     mesh = meshes.load_mesh(mesh_file, **opts)
 
     mat = doc["material"]

@@ -183,10 +183,10 @@ def test_surface_mesh_is_tetrahedralised_with_the_scene_bounds(tmp_path):
 
 
 @pytest.mark.parametrize("bounds, match", [
-    ("min_ratio = 1.0", r"\[mesh\] min_ratio must be at least 1.1"),  # TetGen refined without end
-    ("min_ratio = 0.5", r"\[mesh\] min_ratio must be at least 1.1"),
-    ("max_volume = 0.0", r"\[mesh\] max_volume must be a positive volume"),  # was silently no bound
-    ("max_volume = -1.0", r"\[mesh\] max_volume must be a positive volume"),
+    ("min_ratio = 1.0", r"box.obj: min_ratio must be at least 1.1"),  # TetGen refined without end
+    ("min_ratio = 0.5", r"box.obj: min_ratio must be at least 1.1"),
+    ("max_volume = 0.0", r"box.obj: max_volume must be a positive volume"),  # was silently no bound
+    ("max_volume = -1.0", r"box.obj: max_volume must be a positive volume"),
     ("max_volume = 1e-12", r"box.obj: max_volume = 1e-12 m\^3 would make at least 4e\+07 tets"),  # mm^3 for m^3
 ])
 def test_surface_bounds_tetgen_cannot_meet_are_named(tmp_path, bounds, match):
