@@ -82,11 +82,11 @@ class _Window:
     """Released simulations of one recording over its first `frames` frames."""
 
     def __init__(self, scene, model, rec, emb, frames: int):
-        from .replay import simulation_times
+        from .replay import simulation_times, steps_covering
 
         self.scene, self.model, self.rec, self.emb = scene, model, rec, emb
         self.frames = frames
-        self.steps = int(np.ceil((rec.times[frames - 1] - rec.times[0]) / scene.time_step - 1e-9))
+        self.steps = steps_covering(rec.times[frames - 1] - rec.times[0], scene.time_step)
         self.steps = max(1, min(self.steps, len(simulation_times(scene, rec)) - 1))
         self.seen = rec.seen[:frames]
         self.obs = rec.markers[:frames][self.seen]

@@ -234,10 +234,22 @@ def follow_targets(scene, model, idx: np.ndarray, targets: np.ndarray, x0: np.nd
     return integ.simulate_constrained(np.ascontiguousarray(targets[1:]), np.zeros_like(V), progress=progress)
 
 
+# A span that ends less than this fraction of a step past a whole number of steps is that number
+# of steps: times stored as float32 (resolution ~6e-8 of their value) end a hair past the step
+# they mean (0.3 s at 1 ms steps read as 0.30000001 s was simulated to 0.301 s), and the last
+# frame is then read at the last step, off by at most this fraction of a step's motion.
+STEP_ROUNDING = 1e-3
+
+
+def steps_covering(span: float, h: float) -> int:
+    """The number of steps of length h that cover `span` (s), up to STEP_ROUNDING."""
+    return int(np.ceil(span / h - STEP_ROUNDING))
+
+
 def simulation_times(scene, rec: Recording) -> np.ndarray:
-    """Step times covering the recording: times[0] + h * (0..S), S = ceil(span / h)."""
+    """Step times covering the recording: times[0] + h * (0..S), S = steps_covering(span, h)."""
     h = scene.time_step
-    steps = int(np.ceil((rec.times[-1] - rec.times[0]) / h - 1e-9))
+    steps = steps_covering(rec.times[-1] - rec.times[0], h)
     return rec.times[0] + h * np.arange(steps + 1)
 
 

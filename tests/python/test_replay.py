@@ -185,3 +185,22 @@ def test_unconverged_newton_steps_warn():
     with warnings.catch_warnings():
         warnings.simplefilter("error", replay.NonConvergenceWarning)
         replay.simulate_recording(scene, model, rec, state=(V0, v), max_newton=8)
+
+
+def test_float32_times_end_on_the_step_they_mean(setup):
+    """Times stored as float32 end a hair past a whole number of steps (0.3 s reads as
+    0.30000001 s); the replay covers 0.3 s, not one step more, and the last frame is the
+    simulation's last step. A span a real fraction of a step past it gets the extra step."""
+    scene = setup[0]
+    K = 2
+    rest = np.zeros((K, 3))
+    for span, rate, want in ((0.3, 100.0, 300), (0.3, 240.0, 300), (0.2995, 200.0, 300)):
+        T = int(round(span * rate)) + 1
+        t32 = np.linspace(0.0, span, T).astype(np.float32)
+        rec = Recording(t32, marker_rest=rest, markers=np.zeros((T, K, 3)))
+        assert rec.times[-1] > span or span == 0.2995  # the float32 rounding this is about
+        sim_t = replay.simulation_times(scene, rec)
+        assert len(sim_t) - 1 == want, (span, rate)
+        assert sim_t[-1] >= rec.times[-1] - replay.STEP_ROUNDING * H
+    assert replay.steps_covering(0.3 + 0.01 * H, H) == 301
+    assert replay.steps_covering(0.3 + 1e-4 * H, H) == 300
