@@ -599,7 +599,22 @@ class Learner:
 
 
 def learn(scene, run_dir, options: LearnOptions | None = None, resume: bool = False, log=print) -> dict:
-    """Run the learning loop; returns dict(best_iteration, params (RbfParams or None when the
-    nominal model was best), metrics, nominal, final, lambda (the observation weight used),
-    scene (the scene learned from: cloud recordings replaced by tracked markers), tracking)."""
-    return Learner(scene, run_dir, options, log).run_loop(resume)
+    """Run the learning loop on `scene` (a Scene or a scene.toml path) from its own material (the
+    nominal start) and save the kept correction as RUN/model.npz + model.json (io.save_model, no
+    MLP; loadable with `matlearn simulate SCENE --model RUN` and io.scene_model). Returns
+    dict(best_iteration, params (RbfParams or None when the nominal model was best), metrics,
+    nominal, final, lambda (the observation weight used), scene (the scene learned from: cloud
+    recordings replaced by tracked markers), tracking)."""
+    from .io import save_model
+    from .start import zero_params
+
+    if isinstance(scene, (str, Path)):
+        from ..scene import load_scene
+
+        scene = load_scene(scene)
+    res = Learner(scene, run_dir, options, log).run_loop(resume)
+    meta = {"start": "nominal", "best_iteration": res["best_iteration"]}
+    if scene.path is not None:
+        meta["scene"] = str(Path(scene.path).resolve())
+    save_model(run_dir, res["params"] if res["params"] is not None else zero_params(), None, meta=meta)
+    return res
