@@ -43,6 +43,10 @@ def test_learning_cuts_held_out_error_and_resume_is_identical(case, tmp_path):
     b = [m["train"]["max_error_pct"] for m in resumed["metrics"]]
     np.testing.assert_allclose(b, a, rtol=1e-9)
     np.testing.assert_allclose(resumed["params"].weights, full["params"].weights, rtol=1e-9, atol=0)
+    # Only the iteration cap may change on a resume: other options shaped the iterations run.
+    with pytest.raises(ValueError, match=r"other options \(centers: 12 then, 8 now"):
+        learn(sc, tmp_path / "part", LearnOptions(iterations=2, modes=12, centers=8, ridges=(1e-6,)),
+              resume=True, log=None)
     # A run written by other code is not resumed: its checkpointed correction would be scored
     # by a different model (bench/visibility.json's markers_13 re-score 0.05295 -> 0.05311 %
     # was a checkpoint of the C1 box extension re-scored with the frozen-kernel extension).

@@ -64,6 +64,10 @@ _RESULT_MODULES = ("learning", "clouds", "replay.py", "embedding.py", "scene.py"
                    "recording.py", "meshes.py", "release.py")
 
 
+# options a resumed run may change: more (or fewer) iterations continue the same run
+RESUMABLE_OPTIONS = ("iterations",)
+
+
 def code_fingerprint() -> str:
     """sha1 of what a learning result depends on: the compiled core (`matlearn._core`) and the
     Python modules of the learning path (`_RESULT_MODULES`)."""
@@ -266,6 +270,16 @@ class Learner:
             raise ValueError(f"{self.run} was written by different code (fingerprint {doc.get('code')}, now "
                              f"{self.code}); resuming would not reproduce an uninterrupted run: start "
                              f"a new run (or delete {mfile})")
+        # every option but the iteration cap shapes the iterations already run: resuming with
+        # another would mix two runs (and metrics.json would name only the new options)
+        now = json.loads(json.dumps(asdict(self.opt), default=str))
+        was = doc.get("options", {})
+        changed = sorted(k for k in set(now) | set(was) if k not in RESUMABLE_OPTIONS and now.get(k) != was.get(k))
+        if changed:
+            raise ValueError(f"{self.run} was run with other options ("
+                             + ", ".join(f"{k}: {was.get(k)!r} then, {now.get(k)!r} now" for k in changed)
+                             + "); resume with the run's options (only the iteration cap may change) or start "
+                               "a new run")
         its = [m for m in doc["iterations"] if "fit" in m and self._ckpt(m["iteration"]).exists()]
         if not its:
             return None
