@@ -176,6 +176,8 @@ def test_cli_best_start_keeps_the_lower_train_run_and_its_model_replays(case, tm
     assert meta["start"] == "best" and ("base_material" in meta) == (best["chosen"] != "nominal")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["start"]["chosen"] == best["chosen"]
+    # "nominal" in the summary is the kept start's iteration 0, and says so
+    assert summary["nominal_model"] == ("nominal" if best["chosen"] == "nominal" else f"{best['chosen']} start")
     sc = load_scene(case)
     learned = score(sc, scene_model(sc, out), "test")["recordings"][0]["max_error_pct"]
     assert learned == pytest.approx(summary["final"]["test"]["max_error_pct"], rel=1e-6)

@@ -53,8 +53,13 @@ def run(args) -> int:
                "lambda": res["lambda"],
                "start": start, "nominal": res["nominal"], "final": res["final"], "wall_s": None}
     mlp = None
+    # the model the loop started from: the scene's nominal one, or a fitted start's material
+    kept = start.get("chosen", args.start) if args.start == "best" else args.start
+    first = "nominal" if kept == "nominal" else f"{kept} start"
+    summary["nominal_model"] = first  # what "nominal" (the loop's iteration 0) was scored with
     if params is None:
-        print("the nominal model fits best; writing a zero correction", file=sys.stderr)
+        print(f"no learned correction improves on the {first} model; writing a zero correction",
+              file=sys.stderr)
         from ..learning.start import zero_params
 
         params = zero_params()
@@ -91,7 +96,7 @@ def run(args) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     nom, fin = res["nominal"], res["final"]
     role = "test" if nom.get("test") else "train"
-    print(f"{role} max error: {args.start} {nom[role]['max_error_pct']:.3f}% -> learned "
+    print(f"{role} max error: {first} {nom[role]['max_error_pct']:.3f}% -> learned "
           f"{fin[role]['max_error_pct']:.3f}% (iteration {res['best_iteration']}); model in {out}")
     return 0
 
