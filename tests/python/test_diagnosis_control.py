@@ -21,6 +21,11 @@ def test_control_case_claims_no_effect(tmp_path):
     assert d["gap_with_offset"]["max_error_pct"] < 0.3 * result["gap_before"]["max_error_pct"]
     # the nominal material on the once-refined mesh, closer to the finer truth, also shrinks it
     assert d["gap_refined_mesh"]["max_error_pct"] < 0.5 * result["gap_before"]["max_error_pct"]
+    # stiffness and density are told apart by no recording, claimed or not: each names the other
+    # (formats.md `confounded_with`), also where neither explains anything
+    rows = {e["name"]: e for e in result["effects"]}
+    assert "density" in rows["stiffness_scale"]["confounded_with"]
+    assert "stiffness_scale" in rows["density"]["confounded_with"]
 
 
 def test_truth_on_the_model_mesh_claims_no_effect(tmp_path):

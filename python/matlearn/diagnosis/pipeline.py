@@ -37,6 +37,13 @@ from .selection import (ADD_FACTOR, DISSIPATIVE, EXPLAINED_MIN, GAP_FACTOR, NEST
 START_DECISION = True
 
 
+# Families no recording can tell apart, whatever their fits: every load a recording has is
+# gravity (an acceleration) or a prescribed motion, so the dynamics depend on E / rho only and a
+# density scale c acts exactly as a stiffness scale 1 / c (formats.md: such effects carry
+# `confounded_with` each other in every ranking, claimed or not).
+TWINS = {"stiffness_scale": "density", "density": "stiffness_scale"}
+
+
 def _printer(progress):
     t0 = time.time()
 
@@ -451,8 +458,10 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
             entry["gap_after"] = cumulative[name]
         else:  # not in the verdict: the effect alone (its refined or its linearised fit)
             entry["gap_after"] = gaps[("alone", name)]
-        if e["confounded_with"]:
-            entry["confounded_with"] = e["confounded_with"]
+        twin = TWINS.get(name)
+        confounded = e["confounded_with"] + ([twin] if twin and twin not in e["confounded_with"] else [])
+        if confounded:
+            entry["confounded_with"] = confounded
         if "evidence" in e:  # explained measured on other evidence than the train markers
             entry["evidence"] = e["evidence"]
         loo = cv.get(name, cv.get(name + "/claim"))
