@@ -3,6 +3,7 @@ exposes `register(subparsers)`; this module only discovers and dispatches them."
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import pkgutil
 import sys
@@ -25,6 +26,20 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"matlearn: warning: {message}", file=file or sys.stderr)
 
 
+class _DefaultsFormatter(argparse.HelpFormatter):
+    """Help that states every option's default (and so its unit, where the help names one)
+    unless its text already does."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if (not action.option_strings or action.required or default is None or default is False
+                or default is argparse.SUPPRESS or (isinstance(default, list) and not default)
+                or "default" in text.lower()):
+            return text
+        return f"{text} (default: %(default)s)".strip()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="matlearn",
@@ -32,7 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
         "the sim-to-real gap. All quantities in SI units (m, s, kg, Pa).",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True,
+                                parser_class=functools.partial(argparse.ArgumentParser,
+                                                               formatter_class=_DefaultsFormatter))
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
         module = importlib.import_module(f"{commands.__name__}.{info.name}")
         if hasattr(module, "register"):

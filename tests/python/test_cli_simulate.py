@@ -204,3 +204,22 @@ def test_a_replayed_recording_without_a_first_pose_is_named(tmp_path, capsys):
     assert cli.main(["simulate", str(path), "--replay", "0", "--out", str(tmp_path / "x.npz"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "recording 0 (late.npz): initial_state: no marker is seen in frame 0" in err and "at_rest_initially" in err
+
+
+def test_every_subcommand_help_states_its_defaults(capsys):
+    """--help shows each option's default where the help text does not already state it (a
+    zero default included), and none for flags, required options or options without one."""
+    def help_of(name):
+        with pytest.raises(SystemExit):
+            cli.main([name, "--help"])
+        return " ".join(capsys.readouterr().out.split())
+
+    assert "same seed gives the same model (default: 0)" in help_of("learn")
+    ingest = help_of("ingest")
+    assert "--poisson-ratio POISSON_RATIO dimensionless (default: 0.4)" in ingest
+    assert "--time-step TIME_STEP s (default: 0.001)" in ingest
+    assert "--at-rest recordings start at rest (not held deformed) --time-step" in ingest  # a flag: none
+    assert "(default: None)" not in ingest and "(default: False)" not in ingest
+    track = help_of("track")
+    assert "--em-iterations EM_ITERATIONS corrections per frame (default: 2)" in track
+    assert help_of("diagnose").count("default") >= 2

@@ -44,7 +44,7 @@ def register(subparsers) -> None:
     p.add_argument("--model", default="corotated", choices=("corotated", "neo_hookean", "stvk"),
                    help="nominal material law (default corotated)")
     p.add_argument("--youngs-modulus", type=float, default=1e5, help="Pa")
-    p.add_argument("--poisson-ratio", type=float, default=0.4)
+    p.add_argument("--poisson-ratio", type=float, default=0.4, help="dimensionless")
     p.add_argument("--density", type=float, default=1000.0, help="kg/m^3")
     p.add_argument("--alpha-mass", type=float, default=0.0, help="Rayleigh mass coefficient (1/s)")
     p.add_argument("--alpha-stiffness", type=float, default=0.0, help="Rayleigh stiffness coefficient (s)")
