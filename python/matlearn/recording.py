@@ -102,9 +102,11 @@ class Recording:
         given = [k for k in ("cloud_points", "cloud_offsets") if getattr(self, k) is not None]
         if len(given) == 1:
             raise ValueError("cloud_points and cloud_offsets must be given together")
+        if self.cloud_sigma is not None:  # checked with or without clouds (a tracked recording keeps it)
+            self.cloud_sigma = float(self.cloud_sigma)
+            if not self.cloud_sigma > 0:
+                raise ValueError(f"cloud_sigma: must be > 0 (m), got {self.cloud_sigma}")
         if not given:
-            if self.cloud_sigma is not None:
-                self.cloud_sigma = float(self.cloud_sigma)
             return
         self.cloud_points = np.asarray(self.cloud_points, dtype=np.float64)
         if self.cloud_points.ndim != 2 or self.cloud_points.shape[1] != 3:
@@ -124,10 +126,6 @@ class Recording:
                 f"{len(self.cloud_points)}; got first {off[0]}, last {off[-1]}"
             )
         self.cloud_offsets = off
-        if self.cloud_sigma is not None:
-            self.cloud_sigma = float(self.cloud_sigma)
-            if not self.cloud_sigma > 0:
-                raise ValueError(f"cloud_sigma: must be > 0 (m), got {self.cloud_sigma}")
 
     def _validate_drive(self, T: int) -> None:
         if (self.drive_rest is None) != (self.drive is None):

@@ -128,14 +128,22 @@ class Scene:
         checked."""
         dt = float(np.median(np.diff(rec.times))) if len(rec.times) > 1 else 0.0
         if dt >= FRAME_INTERVAL_WARN:
-            warnings.warn(f"{label}: its frames are {dt:.4g} s apart (median): are its times in seconds?",
-                          stacklevel=2)
+            steps = rec.duration / self.time_step
+            warnings.warn(f"{label}: its frames are {dt:.4g} s apart (median): are its times in seconds? "
+                          f"(its {rec.duration:.4g} s take {steps:,.0f} time steps of {self.time_step:g} s "
+                          "to simulate)", stacklevel=2)
         size = self.object_size
         if rec.has_drive:
             self.check_points(rec.drive_rest, f"{label}: drive point")
         if rec.num_markers == 0:
             return
         self.check_points(rec.marker_rest, f"{label}: marker")
+        if rec.markers is not None:
+            never = np.flatnonzero(~rec.seen.any(axis=0))
+            if len(never):
+                warnings.warn(f"{label}: marker(s) {never[:10].tolist()}{' ...' if len(never) > 10 else ''} "
+                              f"({len(never)} of {rec.num_markers}) never seen (NaN in every frame): they "
+                              "carry no information", stacklevel=2)
         rest = np.asarray(rec.marker_rest, float)
         spread = float(np.linalg.norm(np.ptp(rest, axis=0))) if len(rest) >= 4 else None
         if spread is not None and spread < MARKER_SPREAD_MIN * size:

@@ -70,6 +70,10 @@ def test_diagnosis_json_follows_the_public_format(stiff):
 def test_cli_rejects_a_missing_scene(tmp_path, capsys):
     assert main(["diagnose", str(tmp_path / "nope.toml"), "--out", str(tmp_path / "o")]) == 2
     assert "error" in capsys.readouterr().err
+    # from Python too, before anything is written
+    with pytest.raises(FileNotFoundError, match="nope.toml"):
+        diagnose(tmp_path / "nope.toml", tmp_path / "py")
+    assert not (tmp_path / "py").exists() and not (tmp_path / "o").exists()
 
 
 def test_report_is_self_contained_and_the_residual_map_is_readable(stiff):

@@ -257,3 +257,20 @@ def test_python_learn_saves_a_model_that_replays_its_result(case, tmp_path):
     got = transfer_score(load_scene(case), run_dir=run)
     assert got["learned"]["max_error_pct"] == pytest.approx(res["final"]["test"]["max_error_pct"], rel=1e-6)
     assert got["learned"]["max_error_pct"] < got["nominal"]["max_error_pct"]
+
+
+def test_a_train_recording_without_a_motion_is_named(case, tmp_path):
+    """A one-frame train recording stops `learn` with an error naming the file (it reached the
+    space-time problem's 'need at least 3 frames', naming no recording)."""
+    import shutil
+
+    from matlearn.recording import save_recording
+
+    d = tmp_path / "case"
+    shutil.copytree(case.parent, d)
+    sc = load_scene(d / case.name)
+    path = sc.recording_paths("train")[0]
+    rec = load_recording(path)
+    save_recording(Recording(rec.times[:1], rec.marker_rest, rec.markers[:1]), path)
+    with pytest.raises(ValueError, match=rf"train recording {path.name}: 1 frame\(s\) over 0 s, less than 2 time steps"):
+        learn(load_scene(d / case.name), tmp_path / "run", LearnOptions(iterations=1, **OPTS), log=None)

@@ -77,6 +77,7 @@ R2 = np.zeros((2, 3))
         (dict(times=T3, cloud_points=np.zeros((4, 3)), cloud_offsets=[0, 1, 2, 3]), "end at len"),
         (dict(times=T3, cloud_points=np.zeros((4, 3)), cloud_offsets=[0, 3, 1, 4]), "non-decreasing"),
         (dict(times=T3, cloud_points=np.zeros((4, 3)), cloud_offsets=[0, 1, 2, 4], cloud_sigma=-1.0), "cloud_sigma"),
+        (dict(times=T3, marker_rest=R2, markers=np.zeros((3, 2, 3)), cloud_sigma=0.0), "cloud_sigma: must be > 0"),
         (dict(times=T3, marker_rest=R2, markers=np.zeros((3, 2, 3)), drive_rest=np.zeros((1, 3)),
               drive=np.zeros((2, 1, 3))), "drive: expected shape"),
         (dict(times=T3, marker_rest=R2, markers=np.zeros((3, 2, 3)), drive_rest=np.zeros((1, 3))), "together"),

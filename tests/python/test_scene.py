@@ -304,8 +304,14 @@ def test_markers_in_other_units_are_named(example_dir):
     tiny = 1e-3 * np.asarray(mesh.vertices)[:6]
     with pytest.warns(UserWarning, match=r"6 markers span .* less than the object .* same units"):
         sc.check_recording(Recording([0.0, 0.01], tiny, np.stack([tiny, tiny])), "tiny")
-    with pytest.warns(UserWarning, match=r"frames are 10 s apart \(median\): are its times in seconds"):
+    with pytest.warns(UserWarning, match=r"frames are 10 s apart \(median\): are its times in seconds\? "
+                                         rf"\(its 20 s take {20 / sc.time_step:,.0f} time steps"):
         sc.check_recording(Recording([0.0, 10.0, 20.0], rest, np.stack([rest] * 3)), "ms")  # 10 ms frames as s
+    # a marker never seen carries nothing: said, with its index
+    blind = np.stack([rest, rest + 1e-3])
+    blind[:, 1] = np.nan
+    with pytest.warns(UserWarning, match=r"blind: marker\(s\) \[1\] \(1 of 3\) never seen"):
+        sc.check_recording(Recording([0.0, 0.01], rest, blind), "blind")
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a long recording at a high frame rate is fine
         sc.check_recording(Recording(np.arange(0.0, 300.0, 0.01), rest, np.repeat(rest[None], 30000, axis=0)), "long")

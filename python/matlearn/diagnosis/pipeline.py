@@ -108,6 +108,8 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     resume an earlier run's folder is cleared first)."""
     say = _printer(progress)
     out = Path(out_dir)
+    if isinstance(scene_path, (str, Path)) and not Path(scene_path).is_file():  # before any output
+        raise FileNotFoundError(2, "No such scene file", str(scene_path))
     out.mkdir(parents=True, exist_ok=True)
     np.random.seed(seed)
     scene_path = scene_with_markers(scene_path, out, say)  # cloud-only recordings tracked first

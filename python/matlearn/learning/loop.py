@@ -51,7 +51,8 @@ from ..clouds.tracking import refresh_markers
 from ..embedding import embed_points
 from ..parallel import check_cancelled, pmap
 from ..recording import load_recording
-from ..replay import SCORE_START, initial_state, interpolate_frames, simulate_recording, simulation_times
+from ..replay import (SCORE_START, initial_state, interpolate_frames, simulate_recording, simulation_times,
+                      steps_covering)
 from .fit import (FitFrames, RbfParams, extension_probes, fit_system, project_linear_part,
                   solve_fit, tangent_margin)
 from .initial import initial_trajectory
@@ -216,6 +217,10 @@ class Learner:
         self.cloud_sources = [tracked_from.get(str(Path(p).resolve())) for p, _ in train]
         if not self.train:
             raise ValueError("the scene has no 'train' recording with markers or point clouds to learn from")
+        for p, r in train:  # the space-time problem needs a motion: at least 2 steps
+            if steps_covering(r.duration, scene.time_step) < 2:
+                raise ValueError(f"train recording {Path(p).name}: {len(r.times)} frame(s) over {r.duration:g} s, "
+                                 f"less than 2 time steps of {scene.time_step:g} s: nothing to learn a motion from")
         self.test = [r for r in scene.recordings_with_role("test") if r.num_markers > 0]
         mesh = scene.mesh
         self.emb_train = [embed_points(mesh, r.marker_rest) for r in self.train]
