@@ -88,6 +88,12 @@ def test_report_is_self_contained_and_the_residual_map_is_readable(stiff):
     assert "<b>Mesh:</b>" in page and f"E x {d['stiffness_factor']:.3g}" in page
     assert f"max {d['gap_with_offset']['max_error_pct']:.2f} %" in page
     assert f"once-refined mesh (each tet split into 8) gives max {d['gap_refined_mesh']['max_error_pct']:.2f} %" in page
+    # effect parameters as a person reads them: 4 significant digits, units named
+    eff = json.loads((out / "diagnosis.json").read_text())["effects"]
+    scale = next(e for e in eff if e["name"] == "stiffness_scale")["parameters"]["scale"]
+    assert f"<td>scale {scale:.4g}, scale_range [" in page and repr(scale) not in page
+    ray = next(e for e in eff if e["name"] == "rayleigh_damping")["parameters"]
+    assert f"alpha_mass {ray['alpha_mass']:.4g} 1/s, alpha_stiffness {ray['alpha_stiffness']:.4g} s" in page
     m = meshio.read(out / "residual_map.vtu")
     share = m.cell_data["residual_share"][0]
     assert len(share) == len(m.cells_dict["tetra"])

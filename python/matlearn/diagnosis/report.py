@@ -5,9 +5,24 @@ from __future__ import annotations
 import base64
 import html
 import io
-import json
 
 import numpy as np
+
+
+# units of the parameters `effects.describe` reports (the rest are dimensionless)
+PARAMETER_UNITS = {"alpha_mass": "1/s", "alpha_stiffness": "s", "stress_at_strain_ref_Pa": "Pa"}
+
+
+def parameters_text(params: dict) -> str:
+    """An effect's parameters for a person: 4 significant digits, ranges as [lo, hi], units named
+    (diagnosis.json keeps the full values)."""
+    def value(v):
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+    return ", ".join(f"{k} {value(v)}" + (f" {PARAMETER_UNITS[k]}" if k in PARAMETER_UNITS else "")
+                     for k, v in params.items())
 
 
 def _png(fig) -> str:
@@ -198,7 +213,7 @@ def write_report(out, problem, ctx, result, shares, field, fits, selected, patch
     rows = "".join(
         f"<tr><td>{html.escape(e['name'])}</td><td>{e['explained']:.3f}"
         f"{' (of the decay mismatch)' if e.get('evidence') == 'decay' else ''}</td><td>{e['score']:.1f}</td>"
-        f"<td>{html.escape(json.dumps(e['parameters']))}</td>"
+        f"<td>{html.escape(parameters_text(e['parameters']))}</td>"
         f"<td>{'' if not e.get('gap_after') else '%.2f / %.2f' % (e['gap_after']['max_error_pct'], e['gap_after']['rms_error_pct'])}"
         f"{' (grows the held-out gap)' if e.get('held_out_worse') else ''}</td>"
         f"<td>{html.escape(', '.join(e.get('confounded_with', [])))}</td></tr>"
