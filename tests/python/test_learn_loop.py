@@ -250,7 +250,13 @@ def test_python_learn_saves_a_model_that_replays_its_result(case, tmp_path):
     from matlearn.learning.transfer import transfer_score
 
     run = tmp_path / "run"
-    res = learn(str(case), run, LearnOptions(iterations=1, **OPTS), log=None)
+    said = []
+    res = learn(str(case), run, LearnOptions(iterations=1, **OPTS), log=said.append)
+    # the first line says how much one pass simulates (a recording in ms reads as a long one)
+    sc = load_scene(case)
+    steps = [round(r.duration / sc.time_step) for r in sc.recordings_with_role("train")]
+    assert said[0].startswith(f"learning on {sc.mesh.num_tets} tets from {len(steps)} train recording(s) "
+                              f"({sum(steps):,} time steps of {sc.time_step:g} s)"), said[0]
     assert (run / "model.npz").exists() and (run / "model.json").exists()
     assert res["params"] is not None  # the small bar's correction helps (else a zero one is saved)
     load_model(run)

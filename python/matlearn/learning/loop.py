@@ -396,6 +396,11 @@ class Learner:
     def run_loop(self, resume: bool = False) -> dict:
         opt = self.opt
         start, params, st_X = 0, None, None
+        h = self.scene.time_step
+        steps = [steps_covering(r.duration, h) for r in self.train + self.test]
+        self.log(f"learning on {self.scene.mesh.num_tets} tets from {len(self.train)} train recording(s) "
+                 f"({sum(steps[:len(self.train)]):,} time steps of {h:g} s), scored on {len(self.test)} test "
+                 f"recording(s) ({sum(steps[len(self.train):]):,} steps)")
         if resume:
             state = self._load_resume()
             if state is not None:
