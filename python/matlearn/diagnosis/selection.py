@@ -333,15 +333,16 @@ def _joint_fit(P, ctx, a, b, say):
 
 def _charged_score(rss, names, credit, n_eff, floor) -> float:
     """Information criterion of a fit of the families `names` (one or more) with its residual
-    charged CREDIT_FACTOR x the sum of their discretisation credits."""
-    rss = rss + ranking.CREDIT_FACTOR * sum(credit.get(n, 0.0) for n in names)
+    charged CREDIT_FACTOR x the sum of their discretisation credits (at most all the mesh's
+    error, ranking.charge)."""
+    rss = rss + min(sum(ranking.charge(n, credit) for n in names), credit.get(ranking.CAP, np.inf))
     return fitting.score(rss, sum(_dof(n) for n in names), n_eff, floor)
 
 
 def _members_needed(fit, a, b, credit, tol) -> bool:
     """Each member of a jointly fitted pair adds to the other: the pair beats each member's own
-    single fit by more than CREDIT_FACTOR x the other member's credit and the noise."""
-    return all(fit.rss < m["rss"] - ranking.CREDIT_FACTOR * credit.get(o, 0.0) - tol.get(o, 0.0)
+    single fit by more than CREDIT_FACTOR x the other member's credit (ranking.charge) and the noise."""
+    return all(fit.rss < m["rss"] - ranking.charge(o, credit) - tol.get(o, 0.0)
                for m, o in ((a, b["name"]), (b, a["name"])))
 
 
