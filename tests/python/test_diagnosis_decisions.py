@@ -45,6 +45,24 @@ def test_among_tied_fits_the_best_once_charged_its_credit_leads_and_the_prior_on
     assert out[0]["name"] == "stiffness_scale"
 
 
+def test_the_charge_for_mimicry_is_capped_at_all_of_the_mesh_error():
+    """A located region's credit is scaled to the conservative floor; charged CREDIT_FACTOR x it,
+    it paid more than the whole mesh error, which no fit can gain by mimicry. Seed 21's
+    cylinder: a true inclusion leaving 0.23 of 0.58 (the support clamp 0.47, the mesh's
+    conservative rss 0.19) ranked below every family."""
+    rows = [_row("support_compliance", 0.466), _row("heterogeneity", 0.230)]
+    credit = {"support_compliance": 0.0148, "heterogeneity": 0.186}
+    tol = {n: 1e-3 for n in credit}
+    uncapped = ranking.order([dict(r) for r in rows], credit, tol)
+    assert [r["name"] for r in uncapped] == ["support_compliance", "heterogeneity"]  # 0.236 < 2.5 x 0.186
+    capped = ranking.order([dict(r) for r in rows], dict(credit, **{ranking.CAP: 0.194}), tol)
+    assert [r["name"] for r in capped] == ["heterogeneity", "support_compliance"]  # 0.236 > 0.194
+    assert ranking.charge("heterogeneity", dict(credit, **{ranking.CAP: 0.194})) == 0.194
+    # small credits are below the cap: charged as before, and at face value within a nested pair
+    assert ranking.charge("support_compliance", dict(credit, **{ranking.CAP: 0.194})) == pytest.approx(2.5 * 0.0148)
+    assert ranking.charge("heterogeneity", dict(credit, **{ranking.CAP: 0.194}), 1.0) == 0.186
+
+
 def test_confounded_with_is_symmetric_and_excludes_clear_winners():
     rows = [_row("stiffness_scale", 0.10), _row("density", 0.10), _row("poisson_ratio", 0.12),
             _row("support_compliance", 0.60)]
