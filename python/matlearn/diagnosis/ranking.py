@@ -9,13 +9,15 @@ that mimics volumetric locking (a lower Poisson ratio) or the coarse mesh's stif
 large credit; a uniform stiffness scale gets none (the baseline already carries the best
 stiffness offset).
 
-    a beats b  <=>  rss_b - rss_a > credit_a + tol_a  and  score_a < score_b
+    a beats b  <=>  rss_b - rss_a > charge_a + tol_a  and  score_a < score_b
+
+(charge_a: CREDIT_FACTOR x credit_a, at most the conservative discretisation rss, `charge`)
 
 (tol: the noise fluctuation of an rss difference plus the noise a's parameters can fit). Two fits
 neither of which beats the other cannot be told apart by the data: they are reported as
 `confounded_with` each other. Among such fits the one that is best once charged what it could
 have gained by mimicking the mesh error, with the same uncertainty as in `beats`, leads (the
-information criterion of rss + CREDIT_FACTOR x credit, `credited`; the old rule, "the smallest
+information criterion of rss + CREDIT_FACTOR x credit, at most all the mesh's error, `credited`; the old rule, "the smallest
 credit leads", decided near-equal credits by where they fell on a grid of 0.05 x floor: named
 compression bar, Rayleigh damping credit 6.0e-4 led compression 6.5e-4 although compression
 fitted better; charging the credit at face value let a located region lead the named support
