@@ -17,8 +17,9 @@ stiffness offset).
 neither of which beats the other cannot be told apart by the data: they are reported as
 `confounded_with` each other. Among such fits the one that is best once charged what it could
 have gained by mimicking the mesh error, with the same uncertainty as in `beats`, leads (the
-information criterion of rss + CREDIT_FACTOR x credit, at most all the mesh's error, `credited`; the old rule, "the smallest
-credit leads", decided near-equal credits by where they fell on a grid of 0.05 x floor: named
+information criterion of rss + CREDIT_FACTOR x credit, at most all the mesh's error,
+`credited`; the old rule, "the smallest credit leads", decided near-equal credits by where they
+fell on a grid of 0.05 x floor: named
 compression bar, Rayleigh damping credit 6.0e-4 led compression 6.5e-4 although compression
 fitted better; charging the credit at face value let a located region lead the named support
 bar, 0.065 + 0.039 vs 0.106 + 0.001 for the clamp layer, truth the clamp). Only equal evidence
