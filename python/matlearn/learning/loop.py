@@ -622,10 +622,13 @@ class Learner:
                 "scene": self.scene, "tracking": self.tracking}
 
 
-def learn(scene, run_dir, options: LearnOptions | None = None, resume: bool = False, log=print) -> dict:
-    """Run the learning loop on `scene` (a Scene or a scene.toml path) from its own material (the
-    nominal start) and save the kept correction as RUN/model.npz + model.json (io.save_model, no
-    MLP; loadable with `matlearn simulate SCENE --model RUN` and io.scene_model). Returns
+def learn(scene, run_dir, options: LearnOptions | None = None, resume: bool = False, log=print,
+          meta: dict | None = None) -> dict:
+    """Run the learning loop on `scene` (a Scene or a scene.toml path) and save the kept
+    correction as RUN/model.npz + model.json (io.save_model, no MLP; loadable with `matlearn
+    simulate SCENE --model RUN` and io.scene_model). meta: what model.json says of the start
+    (default {"start": "nominal"}: the scene's own material; a fitted start gives its base
+    material, start.learn_from). Returns
     dict(best_iteration, params (RbfParams or None when the nominal model was best), metrics,
     nominal, final, lambda (the observation weight used), scene (the scene learned from: cloud
     recordings replaced by tracked markers), tracking)."""
@@ -637,8 +640,8 @@ def learn(scene, run_dir, options: LearnOptions | None = None, resume: bool = Fa
 
         scene = load_scene(scene)
     res = Learner(scene, run_dir, options, log).run_loop(resume)
-    meta = {"start": "nominal", "best_iteration": res["best_iteration"]}
+    info = {"start": "nominal", **(meta or {}), "best_iteration": res["best_iteration"]}
     if scene.path is not None:
-        meta["scene"] = str(Path(scene.path).resolve())
-    save_model(run_dir, res["params"] if res["params"] is not None else zero_params(), None, meta=meta)
+        info["scene"] = str(Path(scene.path).resolve())
+    save_model(run_dir, res["params"] if res["params"] is not None else zero_params(), None, meta=info)
     return res

@@ -351,11 +351,7 @@ def learn_from(scene, start: str, run_dir, options=None, warm: dict | None = Non
     from .loop import learn
 
     sc, info = start_scene(scene, start, run_dir, warm=warm, max_evaluations=max_evaluations, log=log, laws=laws)
-    res = learn(sc, run_dir, options, resume=resume, log=log)
-    if start != "nominal":  # the correction belongs to the fitted base material: saved with it
-        from .io import save_model
-
-        save_model(run_dir, res["params"] if res["params"] is not None else zero_params(), None,
-                   meta={"start": start, "best_iteration": res["best_iteration"], **model_meta(info)})
+    # the correction belongs to the start's material: saved with it
+    res = learn(sc, run_dir, options, resume=resume, log=log, meta={"start": start, **model_meta(info)})
     # on the scene the loop learned on (cloud-only recordings replaced by their tracked markers)
     return sc, {**info, "stress_scale": check_learned(res["scene"], res["params"])}, res, Path(run_dir)
