@@ -68,10 +68,7 @@ def test_cli_writes_model_metrics_and_plots(case, tmp_path):
         assert (out / name).exists(), name
     metrics = json.loads((out / "metrics.json").read_text())
     assert len(metrics["iterations"]) == 2
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["resumed"] is False
-    assert summary["iterations_wall_s"] == pytest.approx(sum(m["wall_s"] for m in metrics["iterations"]))
-    assert 0 < summary["iterations_wall_s"] <= summary["wall_s"]
+    assert json.loads((out / "summary.json").read_text())["resumed"] is False
     assert metrics["options"]["extend"] == [3.0]
     steps = [t["step"] for t in metrics["iterations"][0]["fit"]["steps_tried"]]
     assert steps[0] == 1.0 and set(steps[1:]) <= {3.0, *LearnOptions().backtrack}

@@ -92,10 +92,9 @@ def run(args) -> int:
 
     with np.load(run_dir / "error_samples.npz") as z:
         plot_error_histograms({k: z[k] for k in z.files}, out / "error_histograms.png")
-    summary["wall_s"] = time.time() - t0  # this command's (after --resume: the resumed part)
+    # this command's time (after --resume, the resumed part; metrics.json has every iteration's)
+    summary["wall_s"] = time.time() - t0
     summary["resumed"] = bool(args.resume)
-    # every iteration's own time, those of the run a --resume continued included
-    summary["iterations_wall_s"] = float(sum(m.get("wall_s", 0.0) for m in res["metrics"]))
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     nom, fin = res["nominal"], res["final"]
     role = "test" if nom.get("test") else "train"
