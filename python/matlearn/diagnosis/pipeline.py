@@ -108,14 +108,12 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     resume an earlier run's folder is cleared first)."""
     say = _printer(progress)
     out = Path(out_dir)
-    if isinstance(scene_path, (str, Path)) and not Path(scene_path).is_file():  # before any output
-        raise FileNotFoundError(2, "No such scene file", str(scene_path))
-    out.mkdir(parents=True, exist_ok=True)
     np.random.seed(seed)
     scene_path = scene_with_markers(scene_path, out, say)  # cloud-only recordings tracked first
     # a recording that does not say it starts at rest starts in motion only where its own data
     # show it (problem.start_in_motion), decided once here for every recording
     P = Problem(scene_path, estimate_velocity="auto" if START_DECISION else False)
+    out.mkdir(parents=True, exist_ok=True)  # once the scene has loaded: a bad one leaves no folder
     P.store = simcache.SimulationStore(out / simcache.FOLDER, resume=resume)
     if resume:
         say(f"resuming: {P.store.resumed} simulation(s) of the interrupted run found in {P.store.folder}"
