@@ -55,12 +55,13 @@ def test_the_charge_for_mimicry_is_capped_at_all_of_the_mesh_error():
     tol = {n: 1e-3 for n in credit}
     uncapped = ranking.order([dict(r) for r in rows], credit, tol)
     assert [r["name"] for r in uncapped] == ["support_compliance", "heterogeneity"]  # 0.236 < 2.5 x 0.186
-    capped = ranking.order([dict(r) for r in rows], dict(credit, **{ranking.CAP: 0.194}), tol)
-    assert [r["name"] for r in capped] == ["heterogeneity", "support_compliance"]  # 0.236 > 0.194
-    assert ranking.charge("heterogeneity", dict(credit, **{ranking.CAP: 0.194})) == 0.194
+    capped = ranking.Credits(credit, cap=0.194)
+    out = ranking.order([dict(r) for r in rows], capped, tol)
+    assert [r["name"] for r in out] == ["heterogeneity", "support_compliance"]  # 0.236 > 0.194
+    assert ranking.charge("heterogeneity", capped) == 0.194
     # small credits are below the cap: charged as before, and at face value within a nested pair
-    assert ranking.charge("support_compliance", dict(credit, **{ranking.CAP: 0.194})) == pytest.approx(2.5 * 0.0148)
-    assert ranking.charge("heterogeneity", dict(credit, **{ranking.CAP: 0.194}), 1.0) == 0.186
+    assert ranking.charge("support_compliance", capped) == pytest.approx(2.5 * 0.0148)
+    assert ranking.charge("heterogeneity", capped, 1.0) == 0.186
 
 
 def test_confounded_with_is_symmetric_and_excludes_clear_winners():

@@ -252,11 +252,10 @@ def diagnose(scene_path, out_dir, seed: int = 0, progress=None, patches: int = 1
     # other families act everywhere or at a fixed place (the clamp).
     credit["heterogeneity"] *= (rss_disc_wide / rss_disc) if rss_disc > 0 else 1.0
     # no family can gain more by mimicry than all the mesh's error the data can hold
-    charge_cap = rss_disc_wide
+    credit = ranking.Credits(credit, cap=rss_disc_wide)
     tol = {n: ranking.noise_tolerance(rss_noise, len(r0), _dof(n)) for n in cheap}
     say("discretisation credit: " + ", ".join(f"{n} {c:.2e}" for n, c in credit.items())
-        + f" (charges capped at {charge_cap:.2e})")
-    credit[ranking.CAP] = charge_cap
+        + f" (charges capped at {credit.cap:.2e})")
     order = sorted(cheap, key=lambda n: fitting.score(cheap[n][1], _dof(n), n_eff, rss_floor))
     say("cheap fits (predicted rss): " + ", ".join(f"{n} {cheap[n][1]:.3e}" for n in order))
 

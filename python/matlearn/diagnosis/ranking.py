@@ -11,7 +11,8 @@ stiffness offset).
 
     a beats b  <=>  rss_b - rss_a > charge_a + tol_a  and  score_a < score_b
 
-(charge_a: CREDIT_FACTOR x credit_a, at most the conservative discretisation rss, `charge`)
+(charge_a: CREDIT_FACTOR x credit_a, at most the conservative discretisation rss: `Credits`,
+`charge`)
 
 (tol: the noise fluctuation of an rss difference plus the noise a's parameters can fit). Two fits
 neither of which beats the other cannot be told apart by the data: they are reported as
@@ -86,19 +87,30 @@ def discretisation_credit(J: dict, d: np.ndarray, rows: slice, scale: float, j_o
 # mesh): a clamp-side region gains 1.1x its credit over the uniform scale; located true regions
 # in the suites gain 5-9x theirs.
 CREDIT_FACTOR = 2.5
-# credit[CAP]: the most any family can gain by mimicking the mesh's error, all of it (the
-# conservative discretisation rss, pipeline.diagnose): a charge of CREDIT_FACTOR x credit is
-# capped there. Only a located region's credit comes near it (scaled to the conservative floor);
-# uncapped, a region was charged 2.4x the whole mesh error and a true 3x softer inclusion that
-# explained 0.60 of the residual (every other family <= 0.25) ranked below all of them
-# (independent seed 21's cylinder, verdict []).
-CAP = "_cap"
+
+
+class Credits(dict):
+    """{family: discretisation credit} with `cap`, the most any family can gain by mimicking the
+    mesh's error: all of it (the conservative discretisation rss, pipeline.diagnose). A charge of
+    CREDIT_FACTOR x credit is capped there. Only a located region's credit comes near it (scaled
+    to the conservative floor); uncapped, a region was charged 2.4x the whole mesh error and a
+    true 3x softer inclusion that explained 0.60 of the residual (every other family <= 0.25)
+    ranked below all of them (independent seed 21's cylinder, verdict [])."""
+
+    def __init__(self, credits: dict, cap: float = np.inf):
+        super().__init__(credits)
+        self.cap = float(cap)
+
+
+def cap_of(credit: dict) -> float:
+    """The cap of a Credits (no cap for a plain dict)."""
+    return getattr(credit, "cap", np.inf)
 
 
 def charge(name: str, credit: dict, factor: float = CREDIT_FACTOR) -> float:
     """What a fit of family `name` is charged for possible mimicry of the mesh's error: `factor`
-    x its credit, at most credit[CAP] (when given)."""
-    return min(factor * credit.get(name, 0.0), credit.get(CAP, np.inf))
+    x its credit, at most the credits' cap (`Credits`)."""
+    return min(factor * credit.get(name, 0.0), cap_of(credit))
 
 
 def beats(a: dict, b: dict, credit: dict, tol: dict) -> bool:

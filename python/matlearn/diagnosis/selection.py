@@ -335,7 +335,7 @@ def _charged_score(rss, names, credit, n_eff, floor) -> float:
     """Information criterion of a fit of the families `names` (one or more) with its residual
     charged CREDIT_FACTOR x the sum of their discretisation credits (at most all the mesh's
     error, ranking.charge)."""
-    rss = rss + min(sum(ranking.charge(n, credit) for n in names), credit.get(ranking.CAP, np.inf))
+    rss = rss + min(sum(ranking.charge(n, credit) for n in names), ranking.cap_of(credit))
     return fitting.score(rss, sum(_dof(n) for n in names), n_eff, floor)
 
 
